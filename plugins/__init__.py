@@ -1,0 +1,1 @@
+"""Mitsuba-facing plugin registration for the pmic integrator (see registration.py)."""

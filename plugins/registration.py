@@ -1,0 +1,61 @@
+"""Register the ``pmic`` integrator with Mitsuba, for the current and future variants.
+
+Mitsuba's plugin registry is per variant, so registering once is not enough: a user may
+``import pmic_integrator`` before or after ``mi.set_variant``. ``install`` registers for
+the active variant (if any) and adds a variant callback that registers again whenever
+the variant changes.
+"""
+from __future__ import annotations
+
+import mitsuba as mi
+
+PLUGIN_NAME = "pmic"
+
+_registered: set[str] = set()
+_installed = False
+
+
+def supported(variant: str | None) -> bool:
+    """pmic needs a JIT (vectorised) RGB variant: llvm_ad_rgb or cuda_ad_rgb."""
+    return bool(variant) and variant.split("_")[0] in ("llvm", "cuda") and variant.endswith("_rgb")
+
+
+def register(variant: str | None = None) -> None:
+    """Register ``pmic`` for ``variant`` (default: the active one)."""
+    variant = variant or mi.variant()
+    if variant is None or variant in _registered:
+        return
+    if supported(variant):
+        mi.register_integrator(PLUGIN_NAME, _create)
+    else:
+        mi.register_integrator(PLUGIN_NAME, lambda props: _unsupported(variant))
+    _registered.add(variant)
+
+
+def _create(props):
+    # Imported lazily: the integrator module needs an active variant at import time.
+    from pmic_integrator.integrator import PMICIntegrator
+
+    return PMICIntegrator(props)
+
+
+def _unsupported(variant: str):
+    raise ValueError(
+        f"integrator 'pmic': variant must be a JIT RGB variant ('llvm_ad_rgb' or "
+        f"'cuda_ad_rgb'), got '{variant}'"
+    )
+
+
+def _on_variant_change(old, new) -> None:
+    if new is not None:
+        register(new)
+
+
+def install() -> None:
+    """Register for the active variant and for every variant selected later."""
+    global _installed
+    if not _installed:
+        mi.detail.add_variant_callback(_on_variant_change)
+        _installed = True
+    if mi.variant() is not None:
+        register(mi.variant())

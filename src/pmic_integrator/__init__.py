@@ -1,0 +1,26 @@
+"""pmic: photon mapping with a view-independent irradiance cache, for Mitsuba 3.
+
+Importing this package (1) points Dr.Jit at a usable libLLVM before ``drjit`` is loaded,
+and (2) registers the ``pmic`` integrator with Mitsuba for every JIT RGB variant, now
+and whenever ``mi.set_variant`` is called later. After::
+
+    import pmic_integrator
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    integrator = mi.load_dict({"type": "pmic"})
+
+``<integrator type="pmic">`` also works in XML scenes loaded with ``mi.load_file``.
+"""
+from ._llvm import configure as _configure_llvm
+
+_configure_llvm()
+
+from .plugins import registration as _registration  # noqa: E402
+
+__version__ = "0.1.0"
+
+register = _registration.register
+
+_registration.install()
+
+__all__ = ["register", "__version__"]

@@ -1,0 +1,358 @@
+"""Stage 3: the irradiance cache — record placement, record computation, interpolation.
+
+Placement follows the paper's Fig. 2 (walk the candidates in order; a candidate that no
+existing record covers becomes a record) but runs as data-parallel rounds that give
+*exactly* the sequential result: in each round, an undecided candidate becomes a
+record when no undecided candidate before it in the order could cover it; then every
+undecided candidate covered by a new record is dropped. A record's radius is known
+before it is computed (a cheap pilot gather), so coverage is decided with the same
+radius the record will have, and after placement every candidate is covered.
+
+Records are computed by final gathering over an M×N stratified hemisphere and carry
+rotational and translational irradiance gradients (Ward & Heckbert 1992, in the form
+of Křivánek et al. 2005). Interpolation uses Ward's error metric with a weight shifted
+to reach zero at the edge of a record's reach, so that records entering or leaving the
+sum cause no brightness step (one of the paper's weak points).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from .gather import GatherSource, stratified_directions, trace_gather_rays
+from .hashgrid import BallGrid
+
+# --- Internal tuning constants -------------------------------------------------------
+#: Pilot gather for a candidate's radius: 4 × 4 strata give a harmonic mean distance
+#: good to ~25 %, enough to size a record; the full gather then computes irradiance.
+PILOT_STRATA = (4, 4)
+#: Ward's error below this is treated as this (a record's own position has error 0).
+MIN_ERROR = 1e-3
+#: A record whose plane is this far (in units of R) in front of the query point is not
+#: used: it sees the scene from the other side of a fold or a thin object.
+IN_FRONT_TOLERANCE = 0.05
+#: Gradients are limited so that a first-order extrapolation over the record's reach
+#: cannot go below zero or above twice the record's irradiance.
+GRADIENT_LIMIT = 1.0
+
+
+@dataclass
+class CacheRecords:
+    """Irradiance-cache records (structure of arrays, one entry per record)."""
+
+    position: mi.Point3f  #: where the record was computed
+    normal: mi.Vector3f  #: surface normal on the lit side
+    radius: mi.Float  #: R: harmonic mean distance to the surrounding geometry, clamped
+    irradiance: mi.Color3f  #: E at the record
+    grad_t: tuple  #: translational gradient, world space: (∇E_r, ∇E_g, ∇E_b) Vector3f
+    grad_r: tuple  #: rotational gradient, world space: (∇E_r, ∇E_g, ∇E_b) Vector3f
+
+    @property
+    def count(self) -> int:
+        return dr.width(self.radius)
+
+    @staticmethod
+    def empty() -> "CacheRecords":
+        z = mi.Vector3f()
+        return CacheRecords(mi.Point3f(), mi.Vector3f(), mi.Float(), mi.Color3f(), (z, z, z), (z, z, z))
+
+    def extend(self, other: "CacheRecords") -> "CacheRecords":
+        if self.count == 0:
+            return other
+        if other.count == 0:
+            return self
+        return CacheRecords(
+            _join(self.position, other.position, mi.Point3f),
+            _join(self.normal, other.normal, mi.Vector3f),
+            _join(self.radius, other.radius, mi.Float),
+            _join(self.irradiance, other.irradiance, mi.Color3f),
+            tuple(_join(a, b, mi.Vector3f) for a, b in zip(self.grad_t, other.grad_t)),
+            tuple(_join(a, b, mi.Vector3f) for a, b in zip(self.grad_r, other.grad_r)))
+
+    def nbytes(self) -> int:
+        return 4 * (3 + 3 + 1 + 3 + 18) * self.count
+
+
+def _join(a, b, dtype):
+    na, nb = dr.width(a), dr.width(b)
+    out = dr.zeros(dtype, na + nb)
+    dr.scatter(out, a, dr.arange(mi.UInt32, na))
+    dr.scatter(out, b, dr.arange(mi.UInt32, nb) + na)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Ward's error metric and the interpolation weight
+# --------------------------------------------------------------------------------------
+def ward_error(x: mi.Point3f, n: mi.Vector3f, rec_p: mi.Point3f, rec_n: mi.Vector3f,
+               rec_radius: mi.Float) -> mi.Float:
+    """ε = |x − xᵢ| / Rᵢ + sqrt(1 − n·nᵢ) (Ward et al. 1988); Ward's weight is 1/ε."""
+    return dr.norm(x - rec_p) / rec_radius + dr.safe_sqrt(1.0 - dr.dot(n, rec_n))
+
+
+def covers(x, n, rec_p, rec_n, rec_radius, max_error) -> mi.Bool:
+    """Record i may be used at (x, n): ε < a, facing the same way, not in front of x."""
+    err = ward_error(x, n, rec_p, rec_n, rec_radius)
+    in_front = dr.dot(x - rec_p, 0.5 * (n + rec_n)) < -IN_FRONT_TOLERANCE * rec_radius
+    return (err < max_error) & (dr.dot(n, rec_n) > 0.0) & ~in_front
+
+
+def interpolation_weight(err: mi.Float, max_error) -> mi.Float:
+    """1/ε − 1/a: Ward's weight shifted to fall continuously to zero at ε = a."""
+    return dr.maximum(dr.rcp(dr.maximum(err, MIN_ERROR)) - 1.0 / max_error, 0.0)
+
+
+# --------------------------------------------------------------------------------------
+# Placement (Fig. 2 of the paper, in data-parallel rounds)
+# --------------------------------------------------------------------------------------
+def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_n,
+                max_error, active, earlier_than=None):
+    """Mask of queries covered by some record in ``grid`` (optionally: by one whose
+    index is smaller than ``earlier_than``, the query's own candidate index)."""
+
+    def visit(found, index, valid):
+        rp = dr.gather(mi.Point3f, records_p, index, valid)
+        rn = dr.gather(mi.Vector3f, records_n, index, valid)
+        rr = dr.gather(mi.Float, records_r, index, valid)
+        ok = valid & covers(query_p, query_n, rp, rn, rr, max_error)
+        if earlier_than is not None:
+            ok &= index < earlier_than
+        return found | ok
+
+    lanes = dr.width(query_p)
+    return grid.for_each_ball(query_p, dr.zeros(mi.Bool, lanes), visit, active=active,
+                              finished=lambda found: found, label="cache_coverage")
+
+
+def place_records(cand_p: mi.Point3f, cand_n: mi.Vector3f, cand_r: mi.Float,
+                  max_error: float, existing: "RecordIndex | None" = None):
+    """Choose which candidates become records, in candidate order (Fig. 2).
+
+    ``cand_r`` is the radius R each candidate would have as a record. Candidates that a
+    record of ``existing`` already covers are skipped. Returns ``(selected, rounds)``:
+    the indices of the candidates that become records (ascending) and the number of
+    data-parallel rounds used.
+    """
+    n = dr.width(cand_r)
+    if n == 0:
+        return mi.UInt32(), 0
+    all_index = dr.arange(mi.UInt32, n)
+    undecided = all_index
+    if existing is not None and existing.records.count > 0:
+        covered = existing.covered(cand_p, cand_n)
+        undecided = dr.compress(~covered)
+    selected = []
+    rounds = 0
+    while dr.width(undecided) > 0:
+        rounds += 1
+        up = dr.gather(mi.Point3f, cand_p, undecided)
+        un = dr.gather(mi.Vector3f, cand_n, undecided)
+        ur = dr.gather(mi.Float, cand_r, undecided)
+        # Would any earlier undecided candidate cover me? Then I must wait for it.
+        grid = BallGrid.build(up, ur * max_error)
+        local = dr.arange(mi.UInt32, dr.width(undecided))
+        blocked = _covered_by(up, un, ur, grid, up, un, max_error, True, earlier_than=local)
+        dr.eval(blocked)
+        new_local = dr.compress(~blocked)
+        new_index = dr.gather(mi.UInt32, undecided, new_local)
+        selected.append(new_index)
+        # Every undecided candidate that a new record covers is decided (not a record).
+        np_ = dr.gather(mi.Point3f, cand_p, new_index)
+        nn = dr.gather(mi.Vector3f, cand_n, new_index)
+        nr = dr.gather(mi.Float, cand_r, new_index)
+        new_grid = BallGrid.build(np_, nr * max_error)
+        covered = _covered_by(np_, nn, nr, new_grid, up, un, max_error, True)
+        # A new record covers itself (ε = 0), so this also removes the new records.
+        is_new = dr.zeros(mi.Bool, dr.width(undecided))
+        dr.scatter(is_new, True, new_local)
+        remaining = dr.compress(~(covered | is_new))
+        undecided = dr.gather(mi.UInt32, undecided, remaining)
+        dr.eval(undecided)
+    if not selected:
+        return mi.UInt32(), rounds
+    out = selected[0]
+    for part in selected[1:]:
+        out = _join(out, part, mi.UInt32)
+    # Ascending candidate order, for reproducibility and comparison with Fig. 2.
+    out = dr.gather(mi.UInt32, out, dr.argsort(out)) if dr.width(out) > 1 else out
+    return out, rounds
+
+
+# --------------------------------------------------------------------------------------
+# Record computation by final gathering
+# --------------------------------------------------------------------------------------
+def _frame(n: mi.Vector3f) -> mi.Frame3f:
+    return mi.Frame3f(dr.normalize(n))
+
+
+def _gather_rays(scene, source, p, n, strata, seed, offset):
+    """Trace M·N stratified rays per point; return per-ray data in [point][j][k] order."""
+    m_theta, n_phi = strata
+    rays = m_theta * n_phi
+    count = dr.width(p.x)
+    lane = dr.arange(mi.UInt32, count * rays)
+    owner = lane // rays
+    sample = lane % rays
+    rng = mi.PCG32(size=count * rays, initstate=mi.UInt64(seed * 0x2545F4914F6CDD1D % (1 << 64)))
+    local, j, k = stratified_directions(m_theta, n_phi, sample, rng.next_float32(), rng.next_float32())
+    op = dr.gather(mi.Point3f, p, owner)
+    on = dr.gather(mi.Vector3f, n, owner)
+    direction = _frame(on).to_world(local)
+    ray = mi.Ray3f(op + on * offset, direction)
+    radiance, distance = trace_gather_rays(scene, source, ray, rng, mi.Bool(True))
+    dr.eval(radiance, distance)
+    return owner, j, k, local, radiance, distance
+
+
+def harmonic_mean_distance(scene, p: mi.Point3f, n: mi.Vector3f, strata, seed: int,
+                           offset: float) -> mi.Float:
+    """R: the harmonic mean of the hit distances of M·N stratified rays (misses count
+    as infinitely far). Only distances are needed, so no radiance is looked up."""
+    m_theta, n_phi = strata
+    rays = m_theta * n_phi
+    count = dr.width(p.x)
+    if count == 0:
+        return mi.Float()
+    lane = dr.arange(mi.UInt32, count * rays)
+    owner = lane // rays
+    rng = mi.PCG32(size=count * rays, initstate=mi.UInt64(seed * 0x2545F4914F6CDD1D % (1 << 64)))
+    local, _, _ = stratified_directions(m_theta, n_phi, lane % rays, rng.next_float32(), rng.next_float32())
+    on = dr.gather(mi.Vector3f, n, owner)
+    ray = mi.Ray3f(dr.gather(mi.Point3f, p, owner) + on * offset, _frame(on).to_world(local))
+    si = scene.ray_intersect_preliminary(ray, mi.Bool(True))
+    inv = dr.select(si.is_valid(), dr.rcp(dr.maximum(si.t, 1e-30)), 0.0)
+    total = dr.block_sum(inv, rays)
+    return rays / dr.maximum(total, 1e-30)
+
+
+def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
+                    radius: mi.Float, strata, seed: int, offset: float) -> CacheRecords:
+    """Final-gather irradiance and gradients at (p, n); ``radius`` is the record's R."""
+    count = dr.width(p.x)
+    if count == 0:
+        return CacheRecords.empty()
+    m_theta, n_phi = strata
+    rays = m_theta * n_phi
+    owner, j, k, local, radiance, distance = _gather_rays(scene, source, p, n, strata, seed, offset)
+    # E = π/(MN) Σ L for cosine-weighted stratified sampling.
+    irradiance = dr.block_sum(radiance, rays) * (math.pi / rays)
+
+    # Rotational gradient: ∂E/∂(rotation δ) = ∫ L sinθ v(φ) dω, v = n × (dir. of φ),
+    # estimated with cosine-weighted samples as π/(MN) Σ L tanθ v(φ).
+    cos_t = dr.maximum(local.z, 1e-4)
+    sin_t = dr.safe_sqrt(1.0 - local.z * local.z)
+    inv_sin = dr.rcp(dr.maximum(sin_t, 1e-6))
+    v = mi.Vector3f(-local.y * inv_sin, local.x * inv_sin, 0.0)
+    rot_w = (math.pi / rays) * sin_t / cos_t
+
+    # Translational gradient (Ward & Heckbert 1992; Křivánek et al. 2005): changes of
+    # the strata's projected solid angles as the point moves, weighted by radiance
+    # differences across each stratum boundary and the nearer hit distance.
+    lane_base = owner * rays
+    jm = dr.maximum(mi.Int32(j) - 1, 0)
+    prev_j = lane_base + mi.UInt32(jm) * n_phi + k
+    prev_k = lane_base + j * n_phi + (k + n_phi - 1) % n_phi
+    l_prev_j = dr.gather(mi.Color3f, radiance, prev_j)
+    l_prev_k = dr.gather(mi.Color3f, radiance, prev_k)
+    d_here = distance
+    d_prev_j = dr.gather(mi.Float, distance, prev_j)
+    d_prev_k = dr.gather(mi.Float, distance, prev_k)
+    # Boundary between strata j-1 and j (at sin²θ = j/M), along the azimuth of stratum k.
+    s_minus = mi.Float(j) / m_theta
+    sin_minus = dr.sqrt(s_minus)
+    phi_center = (mi.Float(k) + 0.5) * (2.0 * math.pi / n_phi)
+    sc, cc = dr.sincos(phi_center)
+    u_k = mi.Vector3f(cc, sc, 0.0)
+    theta_term = (2.0 * math.pi / n_phi) * sin_minus * (1.0 - s_minus) \
+        / dr.maximum(dr.minimum(d_here, d_prev_j), 1e-30)
+    theta_term = dr.select(j > 0, theta_term, 0.0)  # stratum 0 has no inner boundary
+    # Boundary between azimuth strata k-1 and k (at φ = 2πk/N), across all of stratum j.
+    sin_plus = dr.sqrt((mi.Float(j) + 1.0) / m_theta)
+    phi_minus = mi.Float(k) * (2.0 * math.pi / n_phi)
+    sm, cm = dr.sincos(phi_minus)
+    v_k = mi.Vector3f(-sm, cm, 0.0)
+    phi_term = (sin_plus - sin_minus) / dr.maximum(dr.minimum(d_here, d_prev_k), 1e-30)
+
+    frame = _frame(dr.gather(mi.Vector3f, n, owner))
+    grad_t, grad_r = [], []
+    for c in range(3):
+        dl_j = radiance[c] - l_prev_j[c]
+        dl_k = radiance[c] - l_prev_k[c]
+        gt_local = u_k * (theta_term * dl_j) + v_k * (phi_term * dl_k)
+        gr_local = v * (rot_w * radiance[c])
+        gt = mi.Vector3f(*(dr.block_sum(frame.to_world(gt_local)[a], rays) for a in range(3)))
+        gr = mi.Vector3f(*(dr.block_sum(frame.to_world(gr_local)[a], rays) for a in range(3)))
+        grad_t.append(gt)
+        grad_r.append(gr)
+
+    # Limit the gradients: over the record's reach, first-order extrapolation must not
+    # change irradiance by more than GRADIENT_LIMIT × E (noisy gathers near corners).
+    for c in range(3):
+        limit = GRADIENT_LIMIT * irradiance[c] / dr.maximum(radius, 1e-30)
+        norm_t = dr.norm(grad_t[c])
+        grad_t[c] = grad_t[c] * dr.minimum(1.0, limit / dr.maximum(norm_t, 1e-30))
+        limit_r = GRADIENT_LIMIT * irradiance[c]
+        norm_r = dr.norm(grad_r[c])
+        grad_r[c] = grad_r[c] * dr.minimum(1.0, limit_r / dr.maximum(norm_r, 1e-30))
+    records = CacheRecords(mi.Point3f(p), mi.Vector3f(n), mi.Float(radius), mi.Color3f(irradiance),
+                           tuple(grad_t), tuple(grad_r))
+    dr.eval(records.irradiance, *records.grad_t, *records.grad_r)
+    return records
+
+
+# --------------------------------------------------------------------------------------
+# Lookup structure and interpolation
+# --------------------------------------------------------------------------------------
+@dataclass
+class RecordIndex:
+    """Records plus a ball grid of their reach ``a·R``, for coverage and interpolation."""
+
+    records: CacheRecords
+    max_error: float
+    grid: BallGrid
+
+    @staticmethod
+    def build(records: CacheRecords, max_error: float) -> "RecordIndex":
+        return RecordIndex(records, max_error, BallGrid.build(records.position, records.radius * max_error))
+
+    def covered(self, x, n, active=True) -> mi.Bool:
+        r = self.records
+        return _covered_by(r.position, r.normal, r.radius, self.grid, x, n, self.max_error, active)
+
+    def interpolate(self, x: mi.Point3f, n: mi.Vector3f, active=True):
+        """E(x) = Σ wᵢ Eᵢ(x) / Σ wᵢ with gradients; returns ``(E, covered)``."""
+        r = self.records
+        lanes = dr.width(x)
+        a = self.max_error
+        if r.count == 0:
+            return dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes)
+
+        def visit(state, index, valid):
+            total, weight_sum = state
+            rp = dr.gather(mi.Point3f, r.position, index, valid)
+            rn = dr.gather(mi.Vector3f, r.normal, index, valid)
+            rr = dr.gather(mi.Float, r.radius, index, valid)
+            ok = valid & covers(x, n, rp, rn, rr, a)
+            w = interpolation_weight(ward_error(x, n, rp, rn, rr), a)
+            ok &= w > 0
+            e = dr.gather(mi.Color3f, r.irradiance, index, ok)
+            dx = x - rp
+            rot = dr.cross(rn, n)
+            ext = []
+            for c in range(3):
+                gt = dr.gather(mi.Vector3f, r.grad_t[c], index, ok)
+                gr = dr.gather(mi.Vector3f, r.grad_r[c], index, ok)
+                ext.append(e[c] + dr.dot(gt, dx) + dr.dot(gr, rot))
+            e_x = dr.maximum(mi.Color3f(*ext), 0.0)
+            total = dr.select(ok, total + w * e_x, total)
+            weight_sum = dr.select(ok, weight_sum + w, weight_sum)
+            return total, weight_sum
+
+        total, weight_sum = self.grid.for_each_ball(
+            x, (dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Float, lanes)), visit,
+            active=active, label="cache_interpolation")
+        covered = weight_sum > 0
+        return dr.select(covered, total / dr.maximum(weight_sum, 1e-30), 0.0), covered

@@ -1,0 +1,112 @@
+"""Final gathering: radiance arriving at a point over stratified hemisphere rays.
+
+A gather ray that reaches a surface with a diffuse lobe takes that surface's outgoing
+diffuse radiance ``f_d · E``, where ``E`` is the precomputed irradiance of the nearest
+global photon on the same surface (Christensen 2000): no density estimate per ray.
+Rays that reach delta or glossy lobes continue by sampling those lobes (a few bounces).
+Light arriving straight from emitters is *not* counted: the renderer computes direct
+light at the shading point, and the caustic map carries light → specular → point.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from .hashgrid import PointGrid
+from .irradiance import nearest_photon
+from .photons import PhotonMap
+
+# --- Internal tuning constants -------------------------------------------------------
+#: Specular/glossy bounces a gather ray may follow before it gives up (glass needs two
+#: to get through a sphere; four covers a reflection of a refraction).
+GATHER_SPECULAR_BOUNCES = 4
+
+UP = mi.Vector3f(0.0, 0.0, 1.0)
+
+
+def diffuse_response(bsdf, si: mi.SurfaceInteraction3f, active) -> mi.Color3f:
+    """``f_d``: the diffuse lobe's BSDF value, so that outgoing radiance is f_d · E.
+
+    Evaluated for light arriving along the normal; exact (ρ/π) for Lambertian surfaces,
+    and it includes the Fresnel losses of plastic-like coatings, which ρ alone does not.
+    """
+    ctx = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.Diffuse), None)
+    return mi.Color3f(bsdf.eval(ctx, si, UP, active))
+
+
+def non_diffuse_context(mode=mi.TransportMode.Radiance) -> mi.BSDFContext:
+    """A context that samples/evaluates every lobe but the diffuse ones."""
+    mask = int(mi.BSDFFlags.All) & ~int(mi.BSDFFlags.Diffuse)
+    return mi.BSDFContext(mode, mask, None)
+
+
+def stratified_directions(strata_theta: int, strata_phi: int, sample_index: mi.UInt32,
+                          u1: mi.Float, u2: mi.Float):
+    """Cosine-weighted direction in stratum (j, k) of an M×N grid (local frame).
+
+    Returns ``(direction, j, k)`` with ``j`` the cos²θ stratum and ``k`` the azimuth.
+    """
+    j = sample_index // strata_phi
+    k = sample_index % strata_phi
+    s = (mi.Float(j) + u1) / strata_theta
+    phi = (mi.Float(k) + u2) * (2.0 * math.pi / strata_phi)
+    sin_theta = dr.sqrt(s)
+    cos_theta = dr.safe_sqrt(1.0 - s)
+    sp, cp = dr.sincos(phi)
+    return mi.Vector3f(sin_theta * cp, sin_theta * sp, cos_theta), j, k
+
+
+@dataclass
+class GatherSource:
+    """What gather rays read at a diffuse hit: the precomputed-irradiance photons."""
+
+    photons: PhotonMap  #: global map with ``irradiance`` filled in (stage 2)
+    grid: PointGrid  #: hash grid over ``photons`` for nearest-photon lookups
+    radius: float  #: how far to look for the nearest compatible photon
+
+    def irradiance_at(self, si: mi.SurfaceInteraction3f, n: mi.Vector3f, active) -> mi.Color3f:
+        if self.photons.count == 0:
+            return dr.zeros(mi.Color3f, dr.width(si.p))
+        index, found = nearest_photon(self.photons, self.grid, si.p, n, self.radius, active)
+        found &= mi.Bool(active)
+        return dr.gather(mi.Color3f, self.photons.irradiance, index, found)
+
+
+@dr.syntax
+def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
+                      rng: mi.PCG32, active: mi.Bool):
+    """Radiance (excluding emission) arriving along ``ray``, and the first hit distance.
+
+    Returns ``(radiance, distance)``; ``distance`` is +inf for rays that leave the scene.
+    """
+    ray = mi.Ray3f(ray)
+    active = mi.Bool(active)
+    radiance = dr.zeros(mi.Color3f, dr.width(ray.o))
+    throughput = dr.full(mi.Color3f, 1.0, dr.width(ray.o))
+    distance = dr.full(mi.Float, dr.inf, dr.width(ray.o))
+    bounce = dr.zeros(mi.UInt32, dr.width(ray.o))
+    ctx_specular = non_diffuse_context()
+    while dr.hint(active, label="gather_ray", max_iterations=GATHER_SPECULAR_BOUNCES + 1):
+        si = scene.ray_intersect(ray, active)
+        active &= si.is_valid()
+        distance = dr.select(active & (bounce == 0), si.t, distance)
+        bsdf = si.bsdf(ray)
+        flags = bsdf.flags()
+        # Normal on the side the ray arrives from, to match photon normals.
+        n = mi.Vector3f(si.n)
+        n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
+        diffuse = active & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
+        irradiance = source.irradiance_at(si, n, diffuse)
+        radiance += dr.select(diffuse, throughput * diffuse_response(bsdf, si, diffuse) * irradiance, 0.0)
+        rest = active & (mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy))
+        rest &= bounce < GATHER_SPECULAR_BOUNCES
+        bs, weight = bsdf.sample(ctx_specular, si, rng.next_float32(),
+                                 mi.Point2f(rng.next_float32(), rng.next_float32()), rest)
+        throughput *= weight
+        active = rest & (bs.pdf > 0) & (dr.max(throughput) > 0)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        bounce += 1
+    return radiance, distance

@@ -1,0 +1,278 @@
+"""Hash grids built and queried in Dr.Jit kernels.
+
+Two structures, both built in O(N) by a counting sort over hash buckets (one
+``scatter_inc`` pass, an exclusive prefix sum, one scatter):
+
+* :class:`PointGrid` stores points (photons) in cells whose size is the largest query
+  radius; a query visits the 27 cells around the query point. Used for density
+  estimates, nearest-photon lookups and record placement.
+* :class:`BallGrid` stores balls of varying radius (irradiance-cache records with their
+  reach ``a·R``) by inserting each ball into every cell its bounding box overlaps; a
+  query visits only the one cell that contains the query point. Used for cache
+  interpolation and coverage tests, where queries vastly outnumber records.
+
+Queries are symbolic Dr.Jit loops that call a user ``visit`` function for every
+candidate, so one traversal serves sums, counts, minima and early-exit searches. Two
+cells that share a hash bucket are told apart by recomputing (points) or storing
+(balls) each entry's own cell, so no entry is ever visited twice.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import drjit as dr
+import mitsuba as mi
+
+#: Cell coordinates are clamped to this range so that a far-away query cannot overflow
+#: the int32 cell arithmetic; entries never live there, so clamped cells find nothing.
+CELL_COORD_LIMIT = 1 << 20
+
+#: Large primes of Teschner et al. 2003, "Optimized spatial hashing for collision
+#: detection of deformable objects".
+_HASH_PRIMES = (73856093, 19349663, 83492791)
+
+
+def _next_pow2(n: int) -> int:
+    return 1 << max(0, int(n - 1).bit_length())
+
+
+def cell_of(p: mi.Point3f, origin: mi.Point3f, inv_cell_size) -> mi.Vector3i:
+    """Integer cell coordinates of ``p``, clamped to ±``CELL_COORD_LIMIT``."""
+    c = dr.floor((p - origin) * inv_cell_size)
+    c = dr.clip(c, -CELL_COORD_LIMIT, CELL_COORD_LIMIT)
+    return mi.Vector3i(c)
+
+
+def hash_cell(c: mi.Vector3i, mask: int) -> mi.UInt32:
+    """Bucket index of integer cell ``c`` in a table of ``mask + 1`` buckets."""
+    u = mi.Vector3u(c)
+    h = (u.x * _HASH_PRIMES[0]) ^ (u.y * _HASH_PRIMES[1]) ^ (u.z * _HASH_PRIMES[2])
+    return h & mask
+
+
+def _counting_sort(bucket: mi.UInt32, table_size: int):
+    """Return (bucket start offsets [table_size + 1], destination slot per entry)."""
+    counts = dr.zeros(mi.UInt32, table_size)
+    slot = dr.scatter_inc(counts, bucket)
+    dr.eval(counts, slot)
+    starts = dr.prefix_sum(counts)  # exclusive
+    total = dr.width(bucket)
+    cell_start = dr.zeros(mi.UInt32, table_size + 1)
+    dr.scatter(cell_start, starts, dr.arange(mi.UInt32, table_size))
+    dr.scatter(cell_start, mi.UInt32(total), mi.UInt32(table_size))
+    destination = dr.gather(mi.UInt32, starts, bucket) + slot
+    dr.eval(cell_start, destination)
+    return cell_start, destination
+
+
+def _offset_27(j: mi.UInt32) -> mi.Vector3i:
+    """The j-th of the 27 neighbour offsets in {-1, 0, 1}^3."""
+    ji = mi.Int32(j)
+    return mi.Vector3i(ji % 3 - 1, (ji // 3) % 3 - 1, ji // 9 - 1)
+
+
+@dataclass
+class PointGrid:
+    """Points sorted into a uniform hash grid.
+
+    Build with :meth:`build`. Queries with radius up to ``cell_size`` are exact.
+    """
+
+    origin: mi.Point3f  #: lower corner of the grid (width 1)
+    cell_size: float  #: edge of a cell = the largest supported query radius
+    table_mask: int  #: number of hash buckets minus one (a power of two minus one)
+    cell_start: mi.UInt32  #: first sorted entry of each bucket; entry table_size = N
+    order: mi.UInt32  #: original index of the i-th sorted point
+    positions: mi.Point3f  #: sorted point positions (a copy, for coherent gathers)
+    count: int  #: number of points
+
+    @staticmethod
+    def build(positions: mi.Point3f, cell_size: float, origin=None) -> "PointGrid":
+        """Sort ``positions`` into cells of edge ``cell_size`` (> 0, finite)."""
+        cell_size = float(cell_size)
+        if not (cell_size > 0 and dr.isfinite(cell_size)):
+            raise ValueError(f"PointGrid: cell_size must be finite and > 0, got {cell_size}")
+        n = dr.width(positions) if dr.width(positions.x) > 0 else 0
+        if origin is None:
+            origin = mi.Point3f(dr.min(positions.x), dr.min(positions.y), dr.min(positions.z)) \
+                if n > 0 else mi.Point3f(0.0)
+        origin = mi.Point3f(origin)
+        table_size = _next_pow2(max(n, 1))
+        if n == 0:
+            return PointGrid(origin, cell_size, table_size - 1,
+                             dr.zeros(mi.UInt32, table_size + 1), mi.UInt32(),
+                             mi.Point3f(), 0)
+        inv = dr.opaque(mi.Float, 1.0 / cell_size)
+        bucket = hash_cell(cell_of(positions, origin, inv), table_size - 1)
+        cell_start, destination = _counting_sort(bucket, table_size)
+        order = dr.zeros(mi.UInt32, n)
+        dr.scatter(order, dr.arange(mi.UInt32, n), destination)
+        sorted_positions = dr.gather(mi.Point3f, positions, order)
+        dr.eval(order, sorted_positions)
+        return PointGrid(origin, cell_size, table_size - 1, cell_start, order,
+                         sorted_positions, n)
+
+    def for_each_neighbor(self, query: mi.Point3f, radius, state: Any,
+                          visit: Callable[[Any, mi.UInt32, mi.Float, mi.Bool], Any],
+                          active=True, finished: Callable[[Any], mi.Bool] | None = None,
+                          label: str = "point_grid_query"):
+        """Call ``visit(state, index, dist2, valid)`` for every point within ``radius``.
+
+        ``index`` is the point's original index, ``dist2`` its squared distance to
+        ``query``, and ``valid`` the mask of lanes for which the candidate is really
+        inside the radius (``dist2 < radius²``). ``visit`` returns the new state.
+        ``radius`` (scalar or per lane) must not exceed ``cell_size``. ``finished``, if
+        given, stops a lane early (e.g. once a covering record was found).
+        """
+        query = mi.Point3f(query)
+        n_lanes = dr.width(query)
+        active = mi.Bool(active) & mi.Bool(self.count > 0)
+        if self.count == 0:
+            return state
+        radius = mi.Float(radius)
+        radius2 = radius * radius
+        inv = dr.opaque(mi.Float, 1.0 / self.cell_size)
+        origin = self.origin
+        center = cell_of(query, origin, inv)
+        mask = self.table_mask
+
+        # Loop state: which of the 27 cells is being scanned, the current sorted entry
+        # and the end of the current bucket. The scan is flattened into one loop so that
+        # lanes with different bucket sizes do not wait for each other per cell.
+        cell_j = dr.zeros(mi.UInt32, n_lanes)
+        entry = dr.zeros(mi.UInt32, n_lanes)
+        end = dr.zeros(mi.UInt32, n_lanes)
+
+        def cond(cell_j, entry, end, active, state):
+            running = active & ((entry < end) | (cell_j < 27))
+            if finished is not None:
+                running &= ~finished(state)
+            return running
+
+        def body(cell_j, entry, end, active, state):
+            in_bucket = entry < end
+            visited_cell = center + _offset_27(cell_j - 1)
+            p = dr.gather(mi.Point3f, self.positions, entry, in_bucket)
+            same_cell = dr.all(cell_of(p, origin, inv) == visited_cell)
+            d = p - query
+            dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
+            valid = in_bucket & same_cell & (dist2 < radius2)
+            index = dr.gather(mi.UInt32, self.order, entry, valid)
+            state = visit(state, index, dist2, valid)
+            entry = dr.select(in_bucket, entry + 1, entry)
+            # Lanes that exhausted their bucket move on to the next neighbour cell.
+            advance = ~in_bucket
+            bucket = hash_cell(center + _offset_27(cell_j), mask)
+            entry = dr.select(advance, dr.gather(mi.UInt32, self.cell_start, bucket, advance), entry)
+            end = dr.select(advance, dr.gather(mi.UInt32, self.cell_start, bucket + 1, advance), end)
+            cell_j = dr.select(advance, cell_j + 1, cell_j)
+            return cell_j, entry, end, active, state
+
+        _, _, _, _, state = dr.while_loop(
+            state=(cell_j, entry, end, active, state), cond=cond, body=body, label=label)
+        return state
+
+
+@dataclass
+class BallGrid:
+    """Balls (centre, radius) inserted into every grid cell their bounding box overlaps.
+
+    A point query then needs to scan only the one cell that contains it.
+    """
+
+    origin: mi.Point3f  #: lower corner of the grid (width 1)
+    cell_size: float  #: edge of a cell
+    table_mask: int  #: number of hash buckets minus one
+    cell_start: mi.UInt32  #: first entry of each bucket; entry table_size = entries
+    ball: mi.UInt32  #: ball index of each (cell, ball) entry, sorted by bucket
+    cell: mi.Vector3i  #: cell of each entry, to reject other cells sharing the bucket
+    count: int  #: number of balls
+    entries: int  #: number of (cell, ball) pairs
+
+    #: Upper bound on cells per axis that one ball may span; a larger ball makes the
+    #: grid use bigger cells instead of exploding the entry count.
+    MAX_SPAN = 8
+
+    @staticmethod
+    def build(centers: mi.Point3f, radii: mi.Float, cell_size: float | None = None) -> "BallGrid":
+        n = dr.width(centers.x)
+        radii = mi.Float(radii)
+        if n == 0:
+            return BallGrid(mi.Point3f(0.0), 1.0, 0, dr.zeros(mi.UInt32, 2), mi.UInt32(),
+                            mi.Vector3i(), 0, 0)
+        r_max = float(dr.max(radii)[0]) if dr.width(radii) > 0 else 0.0
+        if cell_size is None:
+            # The mean diameter keeps entries per ball near 8 for typical radii.
+            cell_size = 2.0 * float(dr.mean(radii)[0])
+        cell_size = max(float(cell_size), 2.0 * r_max / BallGrid.MAX_SPAN, 1e-30)
+        lo = centers - radii
+        origin = mi.Point3f(dr.min(lo.x), dr.min(lo.y), dr.min(lo.z))
+        inv = dr.opaque(mi.Float, 1.0 / cell_size)
+        cmin = cell_of(centers - radii, origin, inv)
+        cmax = cell_of(centers + radii, origin, inv)
+        span = cmax - cmin + 1
+        per_ball = mi.UInt32(span.x * span.y * span.z)
+        first = dr.prefix_sum(per_ball)
+        dr.eval(first, cmin, span)
+        total = int(dr.sum(per_ball)[0])
+        # Expand balls into (cell, ball) pairs: pair p belongs to the last ball whose
+        # first pair is <= p.
+        pair = dr.arange(mi.UInt32, total)
+        # first[] is non-decreasing and every ball has >= 1 pair, so the owner of pair
+        # p is one less than the first index i in [1, n] with first[i] > p (or i = n).
+        def starts_at_or_before(i):
+            return (i < n) & (dr.gather(mi.UInt32, first, i, i < n) <= pair)
+
+        owner = mi.UInt32(dr.binary_search(1, n, starts_at_or_before)) - 1
+        local = pair - dr.gather(mi.UInt32, first, owner)
+        # max(., 1): integer division by a zero in an unused tail lane of a SIMD packet
+        # would raise SIGFPE on x86.
+        sx = dr.maximum(dr.gather(mi.Int32, span.x, owner), 1)
+        sy = dr.maximum(dr.gather(mi.Int32, span.y, owner), 1)
+        li = mi.Int32(local)
+        cell = dr.gather(mi.Vector3i, cmin, owner) + mi.Vector3i(li % sx, (li // sx) % sy, li // (sx * sy))
+        table_size = _next_pow2(max(total, 1))
+        bucket = hash_cell(cell, table_size - 1)
+        cell_start, destination = _counting_sort(bucket, table_size)
+        ball = dr.zeros(mi.UInt32, total)
+        dr.scatter(ball, owner, destination)
+        sorted_cell = dr.zeros(mi.Vector3i, total)
+        dr.scatter(sorted_cell, cell, destination)
+        dr.eval(ball, sorted_cell)
+        return BallGrid(origin, cell_size, table_size - 1, cell_start, ball, sorted_cell, n, total)
+
+    def for_each_ball(self, query: mi.Point3f, state: Any,
+                      visit: Callable[[Any, mi.UInt32, mi.Bool], Any], active=True,
+                      finished: Callable[[Any], mi.Bool] | None = None,
+                      label: str = "ball_grid_query"):
+        """Call ``visit(state, ball_index, valid)`` for every ball whose cell set
+        contains the query's cell. ``visit`` must test the ball itself (distance,
+        normal): this only guarantees that no ball containing ``query`` is missed and
+        none is visited twice."""
+        query = mi.Point3f(query)
+        if self.count == 0:
+            return state
+        inv = dr.opaque(mi.Float, 1.0 / self.cell_size)
+        c = cell_of(query, self.origin, inv)
+        bucket = hash_cell(c, self.table_mask)
+        active = mi.Bool(active)
+        entry = dr.gather(mi.UInt32, self.cell_start, bucket, active)
+        end = dr.gather(mi.UInt32, self.cell_start, bucket + 1, active)
+
+        def cond(entry, end, active, state):
+            running = active & (entry < end)
+            if finished is not None:
+                running &= ~finished(state)
+            return running
+
+        def body(entry, end, active, state):
+            same = dr.all(dr.gather(mi.Vector3i, self.cell, entry) == c)
+            index = dr.gather(mi.UInt32, self.ball, entry, same)
+            state = visit(state, index, same)
+            return entry + 1, end, active, state
+
+        _, _, _, state = dr.while_loop(state=(entry, end, active, state),
+                                       cond=cond, body=body, label=label)
+        return state
+

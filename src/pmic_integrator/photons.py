@@ -1,0 +1,238 @@
+"""Stage 1: trace photons from the emitters and store them (Jensen 1996).
+
+Photons are traced as a wavefront: one Dr.Jit kernel per bounce over all live paths,
+with dead paths compacted away between bounces. Emission runs in batches until the
+requested number of photons is *stored* (or a bound on emitted paths is hit), and the
+last batch is cut at a whole path so that the stored photons stay an unbiased sample of
+exactly ``paths_emitted`` light paths.
+
+Two maps are made:
+
+* the **global map**: a photon at every hit on a surface with a diffuse lobe, the first
+  hit included (it becomes the precomputed irradiance that final-gather rays read);
+* the **caustic map**: photons of paths light → one or more specular or glossy bounces
+  → a surface with a diffuse lobe (L S+ D). Caustic passes stop a path at its first
+  non-specular bounce, since it can no longer produce a caustic photon.
+"""
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+
+log = logging.getLogger("pmic")
+
+GLOBAL = "global"
+CAUSTIC = "caustic"
+
+# --- Internal tuning constants -------------------------------------------------------
+#: First batch of emitted paths; later batches are sized from the measured yield.
+FIRST_BATCH_PATHS = 1 << 16
+#: Largest batch: bounds the wavefront's memory (~100 bytes of state per path).
+MAX_BATCH_PATHS = 1 << 22
+#: Photon paths are cut at this many bounces even when max_depth is unbounded; by then
+#: Russian roulette has ended all but ~0.95^64 ≈ 4 % of paths in a white furnace.
+MAX_PHOTON_BOUNCES = 64
+#: Russian roulette keeps a photon with probability min(albedo of the bounce, this):
+#: photons keep roughly equal power, which is what density estimation wants.
+MAX_SURVIVAL = 0.95
+#: Photon maps smaller than this fraction of the request trigger a warning.
+LOW_YIELD_FRACTION = 0.5
+
+
+@dataclass
+class PhotonMap:
+    """Photons stored at surface hits, one entry per photon (structure of arrays)."""
+
+    position: mi.Point3f  #: where the photon hit the surface
+    normal: mi.Vector3f  #: geometric normal, flipped to the side the photon came from
+    power: mi.Color3f  #: flux carried [W], already divided by ``paths_emitted``
+    depth: mi.UInt32  #: surface interactions since the emitter (1 = direct light)
+    specular_path: mi.Bool  #: every earlier bounce was delta/glossy (L S* D: direct or caustic)
+    paths_emitted: int = 0  #: light paths traced to make this map
+    irradiance: mi.Color3f = field(default=None)  #: stage 2 result, None until computed
+
+    @property
+    def count(self) -> int:
+        return dr.width(self.depth) if self.depth is not None else 0
+
+    @staticmethod
+    def empty() -> "PhotonMap":
+        return PhotonMap(mi.Point3f(), mi.Vector3f(), mi.Color3f(), mi.UInt32(), mi.Bool(), 0)
+
+    def select(self, index: mi.UInt32) -> "PhotonMap":
+        """The photons at ``index`` (same ``paths_emitted``)."""
+        irr = None if self.irradiance is None else dr.gather(mi.Color3f, self.irradiance, index)
+        return PhotonMap(dr.gather(mi.Point3f, self.position, index),
+                         dr.gather(mi.Vector3f, self.normal, index),
+                         dr.gather(mi.Color3f, self.power, index),
+                         dr.gather(mi.UInt32, self.depth, index),
+                         dr.gather(mi.Bool, self.specular_path, index),
+                         self.paths_emitted, irr)
+
+    def nbytes(self) -> int:
+        """Bytes held per the arrays above (positions, normals, powers, depths, E)."""
+        per = 4 * (3 + 3 + 3 + 1 + (3 if self.irradiance is not None else 0)) + 1
+        return per * self.count
+
+
+def _concat(parts, dtype):
+    """Join 1-D arrays of ``dtype`` (e.g. several batches of Point3f) end to end."""
+    if not parts:
+        return dtype()
+    if len(parts) == 1:
+        return parts[0]
+    # dr.concat joins nested arrays along their first (component) axis, so scatter.
+    total = sum(dr.width(p) for p in parts)
+    out = dr.zeros(dtype, total)
+    offset = 0
+    for p in parts:
+        n = dr.width(p)
+        if n:
+            dr.scatter(out, p, dr.arange(mi.UInt32, n) + offset)
+        offset += n
+    return out
+
+
+def _is_specular(flags) -> mi.Bool:
+    """A lobe that keeps light focused: delta or glossy (near-specular)."""
+    return mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy)
+
+
+def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
+                 max_store_depth: int):
+    """Trace ``n_paths`` light paths; return photon arrays and their path indices."""
+    rng = mi.PCG32(size=n_paths, initstate=mi.UInt64(seed * 0x9E3779B97F4A7C15 % (1 << 64)),
+                   initseq=mi.UInt64(0xDA3E39CB94B95BDB) + mi.UInt64(first_path))
+    path_id = dr.arange(mi.UInt32, n_paths) + first_path
+    ray, flux, _ = scene.sample_emitter_ray(
+        mi.Float(0.0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
+        mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True))
+    specular_so_far = dr.full(mi.Bool, True, n_paths)
+    ctx = mi.BSDFContext(mi.TransportMode.Importance)
+    out = {k: [] for k in ("position", "normal", "power", "depth", "specular", "path")}
+    bounces = min(max_store_depth, MAX_PHOTON_BOUNCES)
+    for bounce in range(1, bounces + 1):
+        live = dr.width(path_id)
+        if live == 0:
+            break
+        si = scene.ray_intersect(ray, mi.Bool(True))
+        valid = si.is_valid() & (dr.max(flux) > 0)
+        bsdf = si.bsdf(ray)
+        flags = bsdf.flags()
+        has_diffuse = valid & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
+        store = has_diffuse
+        if kind == CAUSTIC:
+            store &= specular_so_far & (bounce >= 2)
+        # Orient the normal towards the side the photon arrived from, so that lookups
+        # from the other side of a thin wall reject it.
+        n = mi.Vector3f(si.n)
+        n = dr.select(dr.dot(n, -ray.d) < 0, -n, n)
+        dr.eval(store, si.p, n, flux, specular_so_far)
+        idx = dr.compress(store)
+        if dr.width(idx) > 0:
+            out["position"].append(dr.gather(mi.Point3f, si.p, idx))
+            out["normal"].append(dr.gather(mi.Vector3f, n, idx))
+            out["power"].append(dr.gather(mi.Color3f, flux, idx))
+            out["depth"].append(dr.full(mi.UInt32, bounce, dr.width(idx)))
+            out["specular"].append(dr.gather(mi.Bool, specular_so_far, idx))
+            out["path"].append(dr.gather(mi.UInt32, path_id, idx))
+        if bounce == bounces:
+            break
+        bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(),
+                                      mi.Point2f(rng.next_float32(), rng.next_float32()), valid)
+        sampled_specular = _is_specular(bs.sampled_type)
+        specular_so_far &= sampled_specular
+        alive = valid & (bs.pdf > 0) & (dr.max(bsdf_weight) > 0)
+        if kind == CAUSTIC:
+            alive &= specular_so_far
+        # Russian roulette on the bounce's albedo keeps photon powers roughly equal.
+        survive = dr.minimum(dr.max(bsdf_weight), MAX_SURVIVAL)
+        alive &= rng.next_float32() < survive
+        flux = flux * bsdf_weight / dr.maximum(survive, 1e-8)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        dr.eval(alive, flux, ray, specular_so_far, rng.state, rng.inc)
+        keep = dr.compress(alive)
+        ray = dr.gather(mi.Ray3f, ray, keep)
+        flux = dr.gather(mi.Color3f, flux, keep)
+        specular_so_far = dr.gather(mi.Bool, specular_so_far, keep)
+        path_id = dr.gather(mi.UInt32, path_id, keep)
+        rng.state = dr.gather(mi.UInt64, rng.state, keep)
+        rng.inc = dr.gather(mi.UInt64, rng.inc, keep)
+        dr.eval(ray, flux, specular_so_far, path_id, rng.state, rng.inc)
+    return (_concat(out["position"], mi.Point3f), _concat(out["normal"], mi.Vector3f),
+            _concat(out["power"], mi.Color3f), _concat(out["depth"], mi.UInt32),
+            _concat(out["specular"], mi.Bool), _concat(out["path"], mi.UInt32))
+
+
+def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed: int,
+                  max_paths: int, progress=None) -> PhotonMap:
+    """Emit light paths in batches until ``target`` photons of ``kind`` are stored.
+
+    ``max_depth`` has Mitsuba's meaning for the camera paths that will use the map: a
+    photon after ``k`` surface interactions completes a path of at least ``k + 1``
+    segments, so photons are stored up to ``max_depth - 1`` interactions (-1:
+    unbounded). At most ``max_paths`` light paths are emitted.
+    """
+    if target <= 0 or len(scene.emitters()) == 0:
+        return PhotonMap.empty()
+    max_store_depth = MAX_PHOTON_BOUNCES if max_depth < 0 else max_depth - 1
+    if max_store_depth < (2 if kind == CAUSTIC else 1):
+        return PhotonMap.empty()
+    parts = []
+    stored = 0
+    emitted = 0
+    batch = 0
+    batch_paths = min(FIRST_BATCH_PATHS, max(1024, 2 * target), max_paths)
+    start = time.perf_counter()
+    while stored < target and emitted < max_paths:
+        batch_paths = int(min(batch_paths, max_paths - emitted))
+        pos, nrm, pwr, dep, spec, path = _trace_batch(
+            scene, kind, emitted, batch_paths, seed * 7919 + batch * 2 + (kind == CAUSTIC),
+            max_store_depth)
+        got = dr.width(dep)
+        remaining = target - stored
+        used_paths = batch_paths
+        if got > remaining:
+            # Keep whole paths only: the first P paths of the batch whose photons fit.
+            per_path = dr.zeros(mi.UInt32, batch_paths)
+            dr.scatter_add(per_path, 1, path - emitted)
+            cumulative = dr.cumsum(per_path) if hasattr(dr, "cumsum") else dr.prefix_sum(per_path) + per_path
+            used_paths = int(dr.count(cumulative <= remaining)[0]) if dr.width(cumulative) else 0
+            keep = dr.compress(path < emitted + used_paths)
+            pos, nrm, pwr, dep, spec = (dr.gather(type(a), a, keep) for a in (pos, nrm, pwr, dep, spec))
+            got = dr.width(keep)
+        if got:
+            parts.append((pos, nrm, pwr, dep, spec))
+        stored += got
+        emitted += used_paths
+        batch += 1
+        if progress is not None:
+            progress(kind, stored, target, emitted)
+        # Size the next batch from the yield so far (+10 % so the last batch overshoots).
+        yield_per_path = stored / max(emitted, 1)
+        need = (target - stored) / max(yield_per_path, 1e-3) * 1.1
+        batch_paths = int(min(max(need, 1024), MAX_BATCH_PATHS))
+    if stored < LOW_YIELD_FRACTION * target:
+        message = (f"pmic: only {stored} of the {target} requested {kind} photons were stored "
+                   f"after {emitted} emitted light paths (is a light enclosed in geometry, or "
+                   f"do its photons reach no diffuse surface?)")
+        log.warning(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
+    if stored == 0:
+        out = PhotonMap.empty()
+        out.paths_emitted = emitted
+        return out
+    position = _concat([p[0] for p in parts], mi.Point3f)
+    normal = _concat([p[1] for p in parts], mi.Vector3f)
+    power = _concat([p[2] for p in parts], mi.Color3f) / float(emitted)
+    depth = _concat([p[3] for p in parts], mi.UInt32)
+    specular = _concat([p[4] for p in parts], mi.Bool)
+    dr.eval(position, normal, power, depth, specular)
+    log.info("pmic: %d %s photons from %d paths in %.2f s", stored, kind, emitted,
+             time.perf_counter() - start)
+    return PhotonMap(position, normal, power, depth, specular, emitted)
