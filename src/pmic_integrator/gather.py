@@ -61,18 +61,43 @@ def stratified_directions(strata_theta: int, strata_phi: int, sample_index: mi.U
 
 @dataclass
 class GatherSource:
-    """What gather rays read at a diffuse hit: the precomputed-irradiance photons."""
+    """What gather rays read at a diffuse hit: the precomputed-irradiance photons.
+
+    Lookups search a fine grid first (cell = radius / ``FINE_GRID_DIVISOR``): the nearest
+    photon is almost always that close, and the fine grid scans ~4× fewer candidates.
+    Lanes that find nothing there search the full radius in the coarse grid.
+    """
 
     photons: PhotonMap  #: global map with ``irradiance`` filled in (stage 2)
-    grid: PointGrid  #: hash grid over ``photons`` for nearest-photon lookups
+    grid: PointGrid  #: hash grid over ``photons`` (cell = ``radius``)
     radius: float  #: how far to look for the nearest compatible photon
+    fine_photons: PhotonMap | None = None  #: the same photons in ``fine_grid`` order
+    fine_grid: PointGrid | None = None  #: hash grid with cell radius / FINE_GRID_DIVISOR
+
+    FINE_GRID_DIVISOR = 2.0
+
+    @staticmethod
+    def build(photons: PhotonMap, grid: PointGrid, radius: float) -> "GatherSource":
+        if photons.count == 0:
+            return GatherSource(photons, grid, radius)
+        fine = PointGrid.build(photons.position, radius / GatherSource.FINE_GRID_DIVISOR)
+        return GatherSource(photons, grid, radius, photons.select(fine.order), fine.sorted_in_place())
 
     def irradiance_at(self, si: mi.SurfaceInteraction3f, n: mi.Vector3f, active) -> mi.Color3f:
         if self.photons.count == 0:
             return dr.zeros(mi.Color3f, dr.width(si.p))
-        index, found = nearest_photon(self.photons, self.grid, si.p, n, self.radius, active)
-        found &= mi.Bool(active)
-        return dr.gather(mi.Color3f, self.photons.irradiance, index, found)
+        active = mi.Bool(active)
+        found = dr.zeros(mi.Bool, dr.width(si.p))
+        result = dr.zeros(mi.Color3f, dr.width(si.p))
+        if self.fine_grid is not None:
+            index, found = nearest_photon(self.fine_photons, self.fine_grid, si.p, n,
+                                          self.fine_grid.cell_size, active)
+            found &= active
+            result = dr.gather(mi.Color3f, self.fine_photons.irradiance, index, found)
+        retry = active & ~found
+        index, found2 = nearest_photon(self.photons, self.grid, si.p, n, self.radius, retry)
+        found2 &= retry
+        return dr.select(found2, dr.gather(mi.Color3f, self.photons.irradiance, index, found2), result)
 
 
 @dr.syntax

@@ -83,7 +83,7 @@ class PointGrid:
     cell_size: float  #: edge of a cell = the largest supported query radius
     table_mask: int  #: number of hash buckets minus one (a power of two minus one)
     cell_start: mi.UInt32  #: first sorted entry of each bucket; entry table_size = N
-    order: mi.UInt32  #: original index of the i-th sorted point
+    order: mi.UInt32 | None  #: original index of the i-th sorted point (None: identity)
     positions: mi.Point3f  #: sorted point positions (a copy, for coherent gathers)
     count: int  #: number of points
 
@@ -112,6 +112,12 @@ class PointGrid:
         dr.eval(order, sorted_positions)
         return PointGrid(origin, cell_size, table_size - 1, cell_start, order,
                          sorted_positions, n)
+
+    def sorted_in_place(self) -> "PointGrid":
+        """The same grid for data already permuted by ``order`` (queries then report
+        sorted indices, and every gather they lead to is cache-coherent)."""
+        return PointGrid(self.origin, self.cell_size, self.table_mask, self.cell_start, None,
+                         self.positions, self.count)
 
     def for_each_neighbor(self, query: mi.Point3f, radius, state: Any,
                           visit: Callable[[Any, mi.UInt32, mi.Float, mi.Bool], Any],
@@ -158,7 +164,7 @@ class PointGrid:
             d = p - query
             dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
             valid = in_bucket & same_cell & (dist2 < radius2)
-            index = dr.gather(mi.UInt32, self.order, entry, valid)
+            index = entry if self.order is None else dr.gather(mi.UInt32, self.order, entry, valid)
             state = visit(state, index, dist2, valid)
             entry = dr.select(in_bucket, entry + 1, entry)
             # Lanes that exhausted their bucket move on to the next neighbour cell.

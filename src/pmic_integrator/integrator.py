@@ -92,7 +92,7 @@ class PreparedScene:
     caustic_radius: float  #: world-space radius of caustic-map estimates
     index: RecordIndex | None  #: the irradiance cache (None: not used)
     skipped: list = field(default_factory=list)  #: passes skipped, with reasons
-    camera_records: dict = field(default_factory=dict)  #: irradiance_cache: per sensor
+    gather_source: GatherSource | None = None  #: what gather rays read (built on demand)
 
 
 class PMICIntegrator(mi.SamplingIntegrator):
@@ -357,8 +357,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                                             self.lookup_size)
         caustic_radius = lookup_radius(info.surface_area, caustic_map.count,
                                        max(1, int(self.lookup_size * CAUSTIC_LOOKUP_FRACTION)))
-        global_grid = PointGrid.build(global_map.position, global_radius) if global_map.count else None
-        caustic_grid = PointGrid.build(caustic_map.position, caustic_radius) if caustic_map.count else None
+        global_map, global_grid = _sorted_map(global_map, global_radius)
+        caustic_map, caustic_grid = _sorted_map(caustic_map, caustic_radius)
         if global_map.count:
             depth_limit = None if self.max_depth == -1 else self.max_depth - 2
             global_map.irradiance = precompute_irradiance(global_map, global_grid, global_radius, depth_limit)
@@ -402,7 +402,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
     def _source(self) -> GatherSource:
         p = self._prepared
-        return GatherSource(p.global_map, p.global_grid, p.global_radius)
+        if p.gather_source is None:
+            p.gather_source = GatherSource.build(p.global_map, p.global_grid, p.global_radius)
+        return p.gather_source
 
     def _build_records(self, scene, cand_p, cand_n, existing: RecordIndex | None, offset):
         """Place records among candidates (Fig. 2), compute them, return the index."""
@@ -509,10 +511,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                    skip_specular_paths=prepared.caustic_map.count > 0,
                                    active=active)
 
-    @dr.syntax
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,
                medium: mi.Medium = None, active: mi.Bool = True):
-        # Only plain Python values here: @dr.syntax would treat arrays as loop state.
         max_depth = 0xFFFFFFFF if self.max_depth == -1 else self.max_depth
         have_global = self._prepared.global_map.count > 0
         use_indirect = have_global or self._prepared.caustic_map.count > 0
@@ -520,17 +520,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         ctx_diffuse = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.Diffuse), None)
         ctx_rest = non_diffuse_context()
 
-        ray = mi.Ray3f(ray)
-        active = mi.Bool(active)
-        result = mi.Spectrum(0.0)
-        throughput = mi.Spectrum(1.0)
-        depth = mi.UInt32(0)
-        prev_si = dr.zeros(mi.SurfaceInteraction3f)
-        prev_bsdf_pdf = mi.Float(1.0)
-        prev_bsdf_delta = mi.Bool(True)
-
-        while dr.hint(active, label="pmic_camera_path",
-                      max_iterations=-1 if self.max_depth == -1 else self.max_depth):
+        def bounce(active, depth, ray, throughput, result, prev_si, prev_bsdf_pdf,
+                   prev_bsdf_delta, sampler):
             si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))
 
             # Emitters hit directly or through delta/glossy bounces (MIS with NEE).
@@ -557,7 +548,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
             # Light that bounced before reaching a diffuse lobe: cache + caustics.
             diffuse = active_next & mi.has_flag(flags, mi.BSDFFlags.Diffuse) & mi.Bool(use_indirect)
-            diffuse &= (depth + 3 <= max_depth)
+            diffuse &= depth + 3 <= max_depth
             n = mi.Vector3f(si.n)
             n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
             irradiance = self._indirect_irradiance(si.p, n, depth, diffuse)
@@ -579,7 +570,17 @@ class PMICIntegrator(mi.SamplingIntegrator):
             keep = ~roulette | (sampler.next_1d() < survive)
             throughput = dr.select(roulette, throughput / dr.maximum(survive, 1e-8), throughput)
             active = active_next & keep & (bs.pdf > 0.0) & (dr.max(throughput) > 0.0)
+            return (active, depth, ray, throughput, result, prev_si, prev_bsdf_pdf,
+                    prev_bsdf_delta, sampler)
 
+        # Explicit loop state: the maps and the cache that the body reads through
+        # ``self`` are inputs, not state.
+        state = (mi.Bool(active), mi.UInt32(0), mi.Ray3f(ray), mi.Spectrum(1.0), mi.Spectrum(0.0),
+                 dr.zeros(mi.SurfaceInteraction3f), mi.Float(1.0), mi.Bool(True), sampler)
+        state = dr.while_loop(state, lambda active, *rest: active, bounce,
+                              label="pmic_camera_path",
+                              max_iterations=-1 if self.max_depth == -1 else self.max_depth)
+        result = state[4]
         result = dr.select(dr.all(dr.isfinite(result)), result, 0.0)
         return result, mi.Bool(True), []
 
@@ -620,6 +621,16 @@ def _first_diffuse_hit(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32):
         bounce += 1
         active &= ~hit & (bs.pdf > 0) & (bounce < 8)
     return p, n, found
+
+
+def _sorted_map(photons: PhotonMap, radius: float):
+    """Build the map's hash grid and reorder the photons into grid order, so that a
+    lookup reads neighbouring memory instead of jumping across the whole map."""
+    if photons.count == 0:
+        return photons, None
+    grid = PointGrid.build(photons.position, radius)
+    photons = photons.select(grid.order)
+    return photons, grid.sorted_in_place()
 
 
 def _progress(kind, stored, target, emitted):
