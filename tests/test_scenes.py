@@ -78,6 +78,12 @@ def test_integrator_with_properties_is_swapped_in():
     np.testing.assert_array_equal(a, b)
 
 
+def test_integrator_instance_is_used_as_is():
+    integrator = sc.make_integrator({"type": "path", "max_depth": 2})
+    scene = sc.load_scene("indirect_room", resolution=8, spp=1, integrator=integrator)
+    assert "max_depth = 2" in str(scene.integrator())
+
+
 def test_make_integrator_default_and_errors():
     assert "max_depth = 4294967295" in str(sc.make_integrator(None))
     with pytest.raises(ValueError, match="type"):

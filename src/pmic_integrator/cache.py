@@ -34,6 +34,12 @@ MIN_ERROR = 1e-3
 #: A record whose plane is this far (in units of R) in front of the query point is not
 #: used: it sees the scene from the other side of a fold or a thin object.
 IN_FRONT_TOLERANCE = 0.05
+#: Interpolation also sums records within BACKUP_REACH × their reach, with their
+#: weight scaled by BACKUP_WEIGHT: negligible where a record covers the point, but it
+#: fills, continuously, the gaps between records that coverage of the photons (or of
+#: pixel centres) leaves between jittered shading points.
+BACKUP_REACH = 2.0
+BACKUP_WEIGHT = 0.05
 #: Gradients are limited so that a first-order extrapolation over the record's reach
 #: cannot go below zero or above twice the record's irradiance.
 GRADIENT_LIMIT = 1.0
@@ -109,9 +115,9 @@ def interpolation_weight(err: mi.Float, max_error) -> mi.Float:
 # Placement (Fig. 2 of the paper, in data-parallel rounds)
 # --------------------------------------------------------------------------------------
 def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_n,
-                max_error, active, earlier_than=None):
-    """Mask of queries covered by some record in ``grid`` (optionally: by one whose
-    index is smaller than ``earlier_than``, the query's own candidate index)."""
+                max_error, active, earlier_than=None, priority=None):
+    """Mask of queries covered by some record in ``grid`` (optionally: only by records
+    whose ``priority`` is smaller than the query's ``earlier_than``)."""
 
     def visit(found, index, valid):
         rp = dr.gather(mi.Point3f, records_p, index, valid)
@@ -119,7 +125,7 @@ def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_
         rr = dr.gather(mi.Float, records_r, index, valid)
         ok = valid & covers(query_p, query_n, rp, rn, rr, max_error)
         if earlier_than is not None:
-            ok &= index < earlier_than
+            ok &= dr.gather(mi.UInt32, priority, index, ok) < earlier_than
         return found | ok
 
     lanes = dr.width(query_p)
@@ -127,9 +133,21 @@ def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_
                               finished=lambda found: found, label="cache_coverage")
 
 
+def placement_priority(index: mi.UInt32) -> mi.UInt32:
+    """The position of each candidate in the walk: a bijective hash of its index.
+
+    The photons arrive sorted by grid cell; walking them in that order would chain
+    each decision to its spatial neighbour's and need many rounds. A pseudo-random
+    order (as the photons had when emitted) keeps the chains short, O(log n) rounds.
+    """
+    h = mi.UInt32(index) * 0x9E3779B1  # odd multiplier: a bijection mod 2^32
+    return h ^ (h >> 16)  # xor-shift: also a bijection
+
+
 def place_records(cand_p: mi.Point3f, cand_n: mi.Vector3f, cand_r: mi.Float,
                   max_error: float, existing: "RecordIndex | None" = None):
-    """Choose which candidates become records, in candidate order (Fig. 2).
+    """Choose which candidates become records, walking them in the order of
+    :func:`placement_priority` (Fig. 2 of the paper).
 
     ``cand_r`` is the radius R each candidate would have as a record. Candidates that a
     record of ``existing`` already covers are skipped. Returns ``(selected, rounds)``:
@@ -153,8 +171,9 @@ def place_records(cand_p: mi.Point3f, cand_n: mi.Vector3f, cand_r: mi.Float,
         ur = dr.gather(mi.Float, cand_r, undecided)
         # Would any earlier undecided candidate cover me? Then I must wait for it.
         grid = BallGrid.build(up, ur * max_error)
-        local = dr.arange(mi.UInt32, dr.width(undecided))
-        blocked = _covered_by(up, un, ur, grid, up, un, max_error, True, earlier_than=local)
+        priority = placement_priority(undecided)
+        blocked = _covered_by(up, un, ur, grid, up, un, max_error, True,
+                              earlier_than=priority, priority=priority)
         dr.eval(blocked)
         new_local = dr.compress(~blocked)
         new_index = dr.gather(mi.UInt32, undecided, new_local)
@@ -176,7 +195,7 @@ def place_records(cand_p: mi.Point3f, cand_n: mi.Vector3f, cand_r: mi.Float,
     out = selected[0]
     for part in selected[1:]:
         out = _join(out, part, mi.UInt32)
-    # Ascending candidate order, for reproducibility and comparison with Fig. 2.
+    # Ascending candidate index, for reproducibility.
     out = dr.gather(mi.UInt32, out, dr.argsort(out)) if dr.width(out) > 1 else out
     return out, rounds
 
@@ -316,17 +335,25 @@ class RecordIndex:
 
     @staticmethod
     def build(records: CacheRecords, max_error: float) -> "RecordIndex":
-        return RecordIndex(records, max_error, BallGrid.build(records.position, records.radius * max_error))
+        reach = records.radius * (max_error * BACKUP_REACH)
+        return RecordIndex(records, max_error, BallGrid.build(records.position, reach))
 
     def covered(self, x, n, active=True) -> mi.Bool:
+        """Is (x, n) within the reach a·R of some record (Ward's test)?"""
         r = self.records
         return _covered_by(r.position, r.normal, r.radius, self.grid, x, n, self.max_error, active)
 
     def interpolate(self, x: mi.Point3f, n: mi.Vector3f, active=True):
-        """E(x) = Σ wᵢ Eᵢ(x) / Σ wᵢ with gradients; returns ``(E, covered)``."""
+        """E(x) = Σ wᵢ Eᵢ(x) / Σ wᵢ with gradients; returns ``(E, covered)``.
+
+        wᵢ is :func:`interpolation_weight` with the maximum error a, plus
+        ``BACKUP_WEIGHT`` × the same weight with ``BACKUP_REACH`` × a (see above).
+        ``covered`` is False where no record is even within the backup reach.
+        """
         r = self.records
         lanes = dr.width(x)
         a = self.max_error
+        a_backup = a * BACKUP_REACH
         if r.count == 0:
             return dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes)
 
@@ -335,8 +362,9 @@ class RecordIndex:
             rp = dr.gather(mi.Point3f, r.position, index, valid)
             rn = dr.gather(mi.Vector3f, r.normal, index, valid)
             rr = dr.gather(mi.Float, r.radius, index, valid)
-            ok = valid & covers(x, n, rp, rn, rr, a)
-            w = interpolation_weight(ward_error(x, n, rp, rn, rr), a)
+            ok = valid & covers(x, n, rp, rn, rr, a_backup)
+            err = ward_error(x, n, rp, rn, rr)
+            w = interpolation_weight(err, a) + BACKUP_WEIGHT * interpolation_weight(err, a_backup)
             ok &= w > 0
             e = dr.gather(mi.Color3f, r.irradiance, index, ok)
             dx = x - rp

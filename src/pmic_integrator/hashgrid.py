@@ -132,10 +132,10 @@ class PointGrid:
         given, stops a lane early (e.g. once a covering record was found).
         """
         query = mi.Point3f(query)
-        n_lanes = dr.width(query)
-        active = mi.Bool(active) & mi.Bool(self.count > 0)
-        if self.count == 0:
+        n_lanes = dr.width(query.x)
+        if self.count == 0 or n_lanes == 0:
             return state
+        active = mi.Bool(active)
         radius = mi.Float(radius)
         radius2 = radius * radius
         inv = dr.opaque(mi.Float, 1.0 / self.cell_size)
@@ -257,7 +257,7 @@ class BallGrid:
         normal): this only guarantees that no ball containing ``query`` is missed and
         none is visited twice."""
         query = mi.Point3f(query)
-        if self.count == 0:
+        if self.count == 0 or dr.width(query.x) == 0:
             return state
         inv = dr.opaque(mi.Float, 1.0 / self.cell_size)
         c = cell_of(query, self.origin, inv)

@@ -23,9 +23,10 @@ log = logging.getLogger("pmic")
 METHODS = ("pmic", "photon_map", "irradiance_cache")
 
 # --- Internal tuning constants -------------------------------------------------------
-#: Smallest record radius, in units of the global photon lookup radius: irradiance is
-#: only resolved to about one lookup radius, so smaller records add cost, not detail.
-R_MIN_LOOKUPS = 1.0
+#: Smallest record *reach* (a·R), in units of the global photon lookup radius:
+#: irradiance is only resolved to about one lookup radius, so smaller records add cost,
+#: not detail; and a reach of ~4 photon spacings leaves no gaps between the photons.
+MIN_REACH_LOOKUPS = 1.0
 #: Largest record radius as a fraction of the scene's bounding-box diagonal: a
 #: view-independent cache has no pixel footprint to bound it, the scene size does.
 R_MAX_DIAGONAL = 0.08
@@ -396,8 +397,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
     def _radius_bounds(self):
         prepared = self._prepared
         r_max = R_MAX_DIAGONAL * prepared.info.diagonal
-        r_min = min(R_MIN_LOOKUPS * prepared.global_radius, r_max) if prepared.global_radius > 0 \
-            else 1e-3 * r_max
+        r_min = min(MIN_REACH_LOOKUPS * prepared.global_radius / self.max_error, r_max) \
+            if prepared.global_radius > 0 else 1e-3 * r_max
         return r_min, r_max
 
     def _source(self) -> GatherSource:

@@ -86,6 +86,12 @@ def precompute_irradiance(photons: PhotonMap, grid: PointGrid, radius: float,
                           max_depth: int | None = None) -> mi.Color3f:
     """Irradiance at every photon of ``photons`` (stage 2 of the paper).
 
+    Each photon counts itself, as in Christensen (2000). On its own that biases E at the
+    photon upwards by about 3/``lookup_size``; but gather rays read the *nearest*
+    photon, which favours photons in sparse neighbourhoods, whose estimates are low by
+    about as much. The two cancel: in a closed furnace the rendered radiance is exact to
+    0.1 %, while leaving the photon out makes it 1.2 % dark (tests/test_furnace.py).
+
     ``max_depth`` limits the photons counted (for camera paths of bounded length).
     """
     if photons.count == 0:

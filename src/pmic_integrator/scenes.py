@@ -131,7 +131,8 @@ def _with_integrator(scene, integrator):
     for i, shape in enumerate(scene.shapes()):
         spec[f"shape_{i}"] = shape
     for i, emitter in enumerate(scene.emitters()):
-        if emitter.shape() is None:  # area emitters come back with their shapes
+        # Area emitters come back with their shapes; add only the others (envmaps...).
+        if not mi.has_flag(emitter.flags(), mi.EmitterFlags.Surface):
             spec[f"emitter_{i}"] = emitter
     return mi.load_dict(spec)
 
@@ -144,16 +145,20 @@ def load_scene(
 ):
     """Load a bundled scene at ``resolution`` x ``resolution`` pixels and ``spp`` samples.
 
-    ``integrator`` is a ``mi.load_dict`` dictionary (``None``: unbounded ``path``). A
-    dictionary with only a ``type`` key is handed to the XML file's ``$integrator``
-    parameter; any other is instantiated with :func:`make_integrator` and the scene is
-    rebuilt around it. Either way ``scene.integrator()`` is the requested integrator.
+    ``integrator`` is a ``mi.load_dict`` dictionary (``None``: unbounded ``path``) or an
+    existing ``mi.Integrator``. A dictionary with only a ``type`` key is handed to the XML
+    file's ``$integrator`` parameter; any other is instantiated with
+    :func:`make_integrator` and the scene is rebuilt around it. Either way
+    ``scene.integrator()`` is the requested integrator.
     """
     mi = _mitsuba()
     path = scene_path(name)
     resolution = _check_resolution(resolution)
     if isinstance(spp, bool) or int(spp) != spp or spp < 1:
         raise ValueError(f"spp must be a positive integer; got {spp!r}")
+    if isinstance(integrator, mi.Integrator):
+        scene = mi.load_file(str(path), res=resolution, spp=int(spp), integrator="path")
+        return _with_integrator(scene, integrator)
     spec = dict(DEFAULT_INTEGRATOR if integrator is None else integrator)
     if "type" not in spec:
         raise ValueError(f"integrator must have a 'type' key; got {spec!r}")

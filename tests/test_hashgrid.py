@@ -1,0 +1,120 @@
+"""Hash grids against brute force: exact agreement on random and adversarial inputs."""
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from pmic_integrator.hashgrid import BallGrid, PointGrid
+
+
+def _neighbors_by_grid(points, queries, radius, cell_size=None):
+    """Sorted neighbour index lists (and squared distances) found through a PointGrid."""
+    grid = PointGrid.build(mi.Point3f(points.T), cell_size or radius)
+    lanes = len(queries)
+    # Record up to 64 neighbours per query as a bit-exact checksum: count, sum of
+    # indices and sum of squared indices identify the set for these small inputs.
+    def visit(state, index, dist2, valid):
+        count, s1, s2 = state
+        i = mi.UInt32(index)
+        return (count + dr.select(valid, 1, 0), s1 + dr.select(valid, i, 0),
+                s2 + dr.select(valid, i * i, 0))
+
+    init = (dr.zeros(mi.UInt32, lanes), dr.zeros(mi.UInt32, lanes), dr.zeros(mi.UInt32, lanes))
+    count, s1, s2 = grid.for_each_neighbor(mi.Point3f(queries.T), radius, init, visit)
+    return np.array(count), np.array(s1), np.array(s2)
+
+
+def _neighbors_brute(points, queries, radius):
+    with np.errstate(over="ignore"):
+        d = queries[:, None, :].astype(np.float32) - points[None, :, :].astype(np.float32)
+        # Same float32 arithmetic and order as the kernel: fma(x, x, fma(y, y, z*z)).
+        dist2 = (d[..., 0] * d[..., 0] + (d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]))
+    inside = dist2 < np.float32(radius) ** 2
+    idx = np.arange(len(points), dtype=np.uint64)
+    return (inside.sum(1), (inside * idx).sum(1) % 2**32, (inside * idx * idx).sum(1) % 2**32)
+
+
+def _check_exact(points, queries, radius, cell_size=None):
+    got = _neighbors_by_grid(points, queries, radius, cell_size)
+    want = _neighbors_brute(points, queries, radius)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w.astype(np.uint32))
+    return got[0]
+
+
+def test_random_points_match_brute_force():
+    rng = np.random.default_rng(1)
+    points = rng.random((3000, 3), dtype=np.float32)
+    queries = rng.random((700, 3), dtype=np.float32)
+    counts = _check_exact(points, queries, 0.08)
+    assert counts.mean() > 3  # the test exercises real neighbourhoods
+
+
+def test_points_on_cell_boundaries_and_exact_radius():
+    # Integer lattice with cell size 1: every point sits on a cell corner, and many
+    # lie exactly at distance 1 = radius (excluded: the query is strict, d < r).
+    g = np.arange(-3, 4, dtype=np.float32)
+    points = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    queries = np.concatenate([points[::7], points[::11] + 0.5], 0)
+    counts = _check_exact(points, queries, 1.0)
+    assert counts.min() >= 1
+    # A lattice point's only neighbour strictly within 1 is itself.
+    assert (counts[: len(points[::7])] == 1).all()
+
+
+def test_many_points_in_one_cell():
+    rng = np.random.default_rng(2)
+    points = (rng.random((2000, 3), dtype=np.float32) * 1e-3).astype(np.float32)
+    queries = rng.random((50, 3), dtype=np.float32) * 1e-3
+    counts = _check_exact(points, queries, 0.5)
+    assert (counts == 2000).all()
+
+
+def test_hash_collisions():
+    # 40 points spread over a 100^3-cell grid: the table has only 64 buckets, so
+    # many distinct cells share a bucket and must not be double counted.
+    rng = np.random.default_rng(3)
+    points = rng.integers(0, 100, (40, 3)).astype(np.float32)
+    points = np.concatenate([points, points + 0.25, points - 0.3], 0)
+    queries = np.concatenate([points, rng.random((300, 3), dtype=np.float32) * 100], 0)
+    _check_exact(points, queries, 1.0)
+
+
+def test_queries_far_outside_and_empty_grid():
+    points = np.zeros((5, 3), np.float32)
+    queries = np.array([[1e30, 0, 0], [-1e30, 1e30, 0], [0, 0, 0]], np.float32)
+    counts = _check_exact(points, queries, 0.1)
+    assert list(counts) == [0, 0, 5]
+    empty = PointGrid.build(mi.Point3f(), 1.0)
+    out = empty.for_each_neighbor(mi.Point3f(queries.T), 1.0, dr.zeros(mi.UInt32, 3),
+                                  lambda s, i, d, v: s + dr.select(v, 1, 0))
+    assert list(np.array(out)) == [0, 0, 0]
+
+
+def test_bad_cell_size_is_rejected():
+    with pytest.raises(ValueError, match="cell_size"):
+        PointGrid.build(mi.Point3f([0.0], [0.0], [0.0]), 0.0)
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_ball_grid_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    centers = rng.random((400, 3), dtype=np.float32)
+    radii = (rng.random(400, dtype=np.float32) ** 3 * 0.3 + 1e-3).astype(np.float32)
+    queries = np.concatenate([rng.random((600, 3), dtype=np.float32), centers[:50]], 0)
+    grid = BallGrid.build(mi.Point3f(centers.T), mi.Float(radii))
+    c, r, q = mi.Point3f(centers.T), mi.Float(radii), mi.Point3f(queries.T)
+
+    def visit(state, index, valid):
+        count, s1 = state
+        cc = dr.gather(mi.Point3f, c, index, valid)
+        rr = dr.gather(mi.Float, r, index, valid)
+        inside = valid & (dr.squared_norm(cc - q) < rr * rr)
+        return count + dr.select(inside, 1, 0), s1 + dr.select(inside, index, 0)
+
+    count, s1 = grid.for_each_ball(q, (dr.zeros(mi.UInt32, len(queries)), dr.zeros(mi.UInt32, len(queries))), visit)
+    d2 = ((queries[:, None] - centers[None]) ** 2).sum(-1)
+    inside = d2 < radii[None] ** 2
+    np.testing.assert_array_equal(np.array(count), inside.sum(1))
+    np.testing.assert_array_equal(np.array(s1), (inside * np.arange(400)).sum(1))
+    assert inside.sum() > 100
