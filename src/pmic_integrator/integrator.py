@@ -93,6 +93,7 @@ class PreparedScene:
     caustic_radius: float  #: world-space radius of caustic-map estimates
     index: RecordIndex | None  #: the irradiance cache (None: not used)
     skipped: list = field(default_factory=list)  #: passes skipped, with reasons
+    stats: dict = field(default_factory=dict)  #: figures of the stages above
     gather_source: GatherSource | None = None  #: what gather rays read (built on demand)
 
 
@@ -234,6 +235,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         self.gather_strata = (m_theta, max(2, self.gather_rays // m_theta))
         self.stats: dict = {}
         self._prepared: PreparedScene | None = None
+        self._cache_builds = 0  #: view-independent caches built from photons so far
         self._inside_render = False
         self._fallback_counter = None
         self._current_depth_limit = None
@@ -256,9 +258,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
             return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
-        self.stats = {k: v for k, v in self.stats.items() if k == "cache_builds"}
-        self.stats.setdefault("cache_builds", 0)
         self._prepare_scene(scene)
+        # Scene-level figures (kept while the cache is reused) plus this render's own.
+        self.stats = self._prepared.stats
+        self.stats["cache_builds"] = self._cache_builds
         self._prepare_view(scene, sensor)
         self._fallback_counter = dr.zeros(mi.UInt32, 1)
         start = time.perf_counter()
@@ -305,7 +308,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             return
         info = SceneInfo.of(scene)
         skipped = []
-        stats = self.stats
+        stats = {}
         offset = RAY_OFFSET_DIAGONAL * info.diagonal
 
         # What this scene needs (each skip is logged and reported in stats).
@@ -343,6 +346,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
         if need_global:
             global_map = trace_photons(scene, GLOBAL, self.global_photons, self.max_depth, self.seed,
                                        self._max_paths(self.global_photons), _progress)
+        if need_caustic and need_global and global_map.count == 0:
+            # Every caustic photon would also have been stored in the global map.
+            skipped.append("caustic map: no global photon reached a diffuse surface")
+            need_caustic = False
         if need_caustic:
             caustic_map = trace_photons(scene, CAUSTIC, self.caustic_photons, self.max_depth, self.seed,
                                         self._max_paths(self.caustic_photons), _progress)
@@ -375,13 +382,13 @@ class PMICIntegrator(mi.SamplingIntegrator):
         stats["records_fallback"] = 0
         stats["placement_rounds"] = 0
         self._prepared = PreparedScene(key, info, global_map, caustic_map, global_grid, caustic_grid,
-                                       global_radius, caustic_radius, None, skipped)
+                                       global_radius, caustic_radius, None, skipped, stats)
         if self.method == "pmic" and global_map.count:
             candidates_p, candidates_n = global_map.position, global_map.normal
             index, rounds = self._build_records(scene, candidates_p, candidates_n, None, offset)
             stats["records"] = index.records.count
             stats["placement_rounds"] = rounds
-            stats["cache_builds"] = stats.get("cache_builds", 0) + 1
+            self._cache_builds += 1
         elif self.method == "pmic":
             skipped.append("cache: no global photons")
         dr.sync_thread()

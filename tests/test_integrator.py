@@ -1,0 +1,209 @@
+"""The pmic plugin as a user meets it: loading, parameters, statistics, edge cases."""
+import subprocess
+import sys
+import textwrap
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import pmic_integrator
+from pmic_integrator.integrator import PMICIntegrator
+
+SMALL = {"global_photons": 20_000, "caustic_photons": 5_000, "gather_rays": 64}
+
+
+def small_cornell(resolution=32, **overrides):
+    d = mi.cornell_box()
+    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = resolution
+    d["sensor"]["film"]["rfilter"] = {"type": "box"}
+    d["integrator"] = {"type": "pmic", **SMALL, **overrides}
+    return d
+
+
+def test_load_dict_and_render():
+    scene = mi.load_dict(small_cornell())
+    image = np.array(mi.render(scene, spp=2))
+    assert image.shape == (32, 32, 3) and np.isfinite(image).all() and image.mean() > 0.05
+    stats = scene.integrator().stats
+    for key in ("photons_global", "photons_caustic", "paths_emitted", "time_photons",
+                "time_precompute", "time_render", "records", "records_fallback",
+                "cache_builds", "time_cache"):
+        assert key in stats, key
+    assert stats["photons_global"] == 20_000
+    assert stats["photons_caustic"] == 0  # no specular surface: caustic map skipped
+    assert any("caustic map" in s for s in stats["skipped"])
+    assert stats["records"] > 0 and stats["cache_builds"] == 1
+    assert "PMICIntegrator" in str(scene.integrator())
+
+
+def test_load_from_xml():
+    scene = mi.load_string(textwrap.dedent("""
+        <scene version="3.0.0">
+            <integrator type="pmic">
+                <string name="method" value="photon_map"/>
+                <integer name="global_photons" value="5000"/>
+                <float name="max_error" value="0.7"/>
+            </integrator>
+            <shape type="sphere"><emitter type="area"/></shape>
+            <shape type="rectangle">
+                <transform name="to_world"><translate z="-2"/><scale value="5"/></transform>
+            </shape>
+            <sensor type="perspective">
+                <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
+                <transform name="to_world"><lookat origin="0,0,5" target="0,0,0" up="0,1,0"/></transform>
+            </sensor>
+        </scene>"""))
+    integrator = scene.integrator()
+    assert isinstance(integrator, PMICIntegrator)
+    assert integrator.method == "photon_map" and integrator.max_error == 0.7
+    assert np.isfinite(np.array(mi.render(scene, spp=1))).all()
+
+
+@pytest.mark.parametrize("order", ["package_first", "variant_first"])
+def test_registration_in_either_import_order(order):
+    lines = ["import pmic_integrator", "import mitsuba as mi", "mi.set_variant('llvm_ad_rgb')"]
+    if order == "variant_first":
+        lines = ["import pmic_integrator._llvm as l; l.configure()", "import mitsuba as mi",
+                 "mi.set_variant('llvm_ad_rgb')", "import pmic_integrator"]
+    lines.append("print(type(mi.load_dict({'type': 'pmic'})).__name__)")
+    out = subprocess.run([sys.executable, "-c", "\n".join(lines)], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().endswith("PMICIntegrator")
+
+
+def test_scalar_variant_gets_a_clear_error():
+    code = ("import pmic_integrator, mitsuba as mi\nmi.set_variant('scalar_rgb')\n"
+            "mi.load_dict({'type': 'pmic'})")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode != 0
+    assert "llvm_ad_rgb" in out.stderr and "scalar_rgb" in out.stderr
+
+
+@pytest.mark.parametrize("name,value,allowed", [
+    ("global_photons", -1, "[0, 2^31)"),
+    ("caustic_photons", -5, "[0, 2^31)"),
+    ("method", "path", "one of pmic, photon_map, irradiance_cache"),
+    ("max_error", 0.0, "(0, 10]"),
+    ("gather_rays", 2, "[4, 65536]"),
+    ("lookup_size", 0, "[1, 100000]"),
+    ("lookup_radius", -1.0, ">= 0"),
+    ("max_depth", 0, "-1 (unbounded)"),
+    ("rr_depth", 0, ">= 1"),
+])
+def test_bad_parameters_raise_value_error_naming_them(name, value, allowed):
+    props = mi.Properties("pmic")
+    props[name] = value
+    with pytest.raises(ValueError) as info:
+        PMICIntegrator(props)
+    message = str(info.value)
+    assert f"'{name}'" in message and allowed in message and repr(value) in message
+    # Through Mitsuba's loader the same message arrives (Mitsuba re-raises plugin
+    # errors as RuntimeError, with the ValueError's text).
+    with pytest.raises(RuntimeError, match=f"ValueError: .*'{name}'"):
+        mi.load_dict({"type": "pmic", name: value})
+
+
+def test_same_seed_same_image_and_cache():
+    images = []
+    for _ in range(2):
+        scene = mi.load_dict(small_cornell())
+        images.append(np.array(mi.render(scene, spp=2, seed=3)))
+    np.testing.assert_array_equal(images[0], images[1])
+    # Another integrator seed traces other photons: the image changes.
+    other = mi.load_dict(small_cornell(seed=1))
+    assert not np.array_equal(np.array(mi.render(other, spp=2, seed=3)), images[0])
+
+
+def test_cache_is_view_independent_and_reused():
+    d = small_cornell()
+    second = dict(d["sensor"])
+    second["to_world"] = mi.ScalarTransform4f().look_at(origin=[0.6, 0.3, 2.5], target=[-0.3, -0.4, 0],
+                                                        up=[0, 1, 0])
+    d["sensor_2"] = second
+    scene = mi.load_dict(d)
+    integrator = scene.integrator()
+    first = np.array(mi.render(scene, sensor=0, spp=2))
+    records = integrator.stats["records"]
+    view2 = np.array(mi.render(scene, sensor=1, spp=2))
+    assert integrator.stats["cache_builds"] == 1
+    assert integrator.stats["records"] == records
+    assert np.isfinite(view2).all() and view2.mean() > 0.05
+    again = np.array(mi.render(scene, sensor=0, spp=2))
+    assert integrator.stats["cache_builds"] == 1
+    assert np.isfinite(again).all() and abs(again.mean() / first.mean() - 1) < 0.05
+    # Editing the scene rebuilds the cache.
+    params = mi.traverse(scene)
+    key = [k for k in params.keys() if k.endswith("radiance.value")][0]
+    params[key] = params[key] * 2
+    params.update()
+    brighter = np.array(mi.render(scene, sensor=0, spp=2))
+    assert integrator.stats["cache_builds"] == 2
+    assert abs(brighter.mean() / first.mean() - 2) < 0.1
+
+
+def test_direct_only_skips_photons():
+    scene = mi.load_dict(small_cornell(max_depth=2))
+    image = np.array(mi.render(scene, spp=4))
+    stats = scene.integrator().stats
+    assert stats["photons_global"] == 0 and stats["paths_emitted"] == 0
+    assert any("max_depth" in s for s in stats["skipped"])
+    ref = np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": 2}), spp=64))
+    assert abs(image.mean() / ref.mean() - 1) < 0.03
+
+
+def test_zero_photons_and_no_emitters_give_finite_images():
+    scene = mi.load_dict(small_cornell(global_photons=0, caustic_photons=0))
+    image = np.array(mi.render(scene, spp=1))
+    assert np.isfinite(image).all() and scene.integrator().stats["records"] == 0
+    d = small_cornell()
+    del d["light"]["emitter"]
+    dark = mi.load_dict(d)
+    image = np.array(mi.render(dark, spp=1))
+    assert np.isfinite(image).all() and image.max() == 0
+    assert any("no emitter" in s for s in dark.integrator().stats["skipped"])
+
+
+def test_enclosed_light_warns_and_stays_finite():
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "pmic", "global_photons": 1000, "max_photon_paths": 20_000},
+        "box": {"type": "cube", "flip_normals": False,
+                "bsdf": {"type": "conductor"}},  # a mirror box: photons never land
+        "light": {"type": "point", "position": [0, 0, 0], "intensity": {"type": "rgb", "value": 1.0}},
+        "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -3]).scale(5)},
+        "sensor": {"type": "perspective", "to_world": mi.ScalarTransform4f().look_at(
+            origin=[0, 0, 6], target=[0, 0, 0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+    })
+    with pytest.warns(RuntimeWarning, match="global photons were stored"):
+        image = np.array(mi.render(scene, spp=1))
+    assert np.isfinite(image).all()
+    stats = scene.integrator().stats
+    assert stats["paths_emitted"] == 20_000  # the bound; the caustic pass is then skipped
+    assert stats["photons_global"] == 0 and stats["photons_caustic"] == 0
+
+
+def test_every_emitter_type_traces_photons():
+    emitters = {
+        "point": {"type": "point", "position": [0, 0.5, 0], "intensity": {"type": "rgb", "value": 2.0}},
+        "spot": {"type": "spot", "to_world": mi.ScalarTransform4f().look_at(
+            origin=[0, 0.9, 0], target=[0, -1, 0], up=[0, 0, 1]), "intensity": {"type": "rgb", "value": 5.0}},
+        "directional": {"type": "directional", "direction": [0.2, -1, 0.1],
+                        "irradiance": {"type": "rgb", "value": 1.0}},
+        "constant": {"type": "constant", "radiance": {"type": "rgb", "value": 0.5}},
+        "envmap": {"type": "envmap", "bitmap": mi.Bitmap(np.full((8, 16, 3), 0.5, np.float32))},
+    }
+    for name, emitter in emitters.items():
+        d = small_cornell(global_photons=5000)
+        del d["light"]["emitter"]
+        if name in ("directional", "constant", "envmap"):
+            del d["ceiling"]  # let light from outside in
+        d["extra_light"] = emitter
+        scene = mi.load_dict(d)
+        image = np.array(mi.render(scene, spp=1))
+        stats = scene.integrator().stats
+        assert np.isfinite(image).all(), name
+        assert stats["photons_global"] == 5000, name
