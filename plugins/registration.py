@@ -33,6 +33,10 @@ def register(variant: str | None = None) -> None:
 
 
 def _create(props):
+    from pmic_integrator import _llvm
+
+    if _llvm.problem and mi.variant().startswith("llvm"):
+        raise _llvm.LLVMUnavailableError(_llvm.problem)
     # Imported lazily: the integrator module needs an active variant at import time.
     from pmic_integrator.integrator import PMICIntegrator
 

@@ -11,9 +11,13 @@ and whenever ``mi.set_variant`` is called later. After::
 
 ``<integrator type="pmic">`` also works in XML scenes loaded with ``mi.load_file``.
 """
-from ._llvm import configure as _configure_llvm
+from . import _llvm
 
-_configure_llvm()
+_llvm.configure()
+if _llvm.problem:
+    import warnings
+
+    warnings.warn(_llvm.problem, RuntimeWarning, stacklevel=2)
 
 from .plugins import registration as _registration  # noqa: E402
 

@@ -18,7 +18,7 @@ MIN_LLVM_MAJOR = 16
 
 
 class LLVMUnavailableError(RuntimeError):
-    """Raised when no usable libLLVM can be configured for Dr.Jit."""
+    """Raised when pmic would run on an LLVM that Dr.Jit cannot use."""
 
 
 def _llvm_major(path: str) -> int | None:
@@ -51,18 +51,24 @@ def _loaded_llvm() -> str | None:
     return None
 
 
+#: Why the LLVM backend cannot be used in this process (None: no known problem).
+problem: str | None = None
+
+
 def configure() -> str | None:
     """Set ``DRJIT_LIBLLVM_PATH`` if it is not set already; return the path in use.
 
-    If ``drjit`` was imported before this call, the LLVM it loaded is checked instead and
-    a clear error is raised when it is too old to work (instead of letting the first
-    kernel abort the process).
+    If ``drjit`` was imported before this call, the LLVM it loaded is checked instead;
+    when it is too old to work, :data:`problem` says so in one sentence (the package
+    warns at import, and ``pmic`` refuses to run on ``llvm_*`` variants rather than
+    letting the first kernel abort the process).
     """
+    global problem
     if "drjit" in sys.modules:
         loaded = _loaded_llvm()
         major = _llvm_major(loaded) if loaded else None
         if loaded and major is not None and major < MIN_LLVM_MAJOR:
-            raise LLVMUnavailableError(
+            problem = (
                 f"Dr.Jit was imported before pmic_integrator and loaded {loaded} "
                 f"(LLVM {major}), which cannot compile Dr.Jit 1.5 kernels; import "
                 f"pmic_integrator before drjit/mitsuba, or set DRJIT_LIBLLVM_PATH to "

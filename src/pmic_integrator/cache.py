@@ -23,6 +23,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .gather import GatherSource, stratified_directions, trace_gather_rays
+from ._jit import opaque_float, rng as make_rng
 from .hashgrid import BallGrid
 
 # --- Internal tuning constants -------------------------------------------------------
@@ -215,12 +216,12 @@ def _gather_rays(scene, source, p, n, strata, seed, offset):
     lane = dr.arange(mi.UInt32, count * rays)
     owner = lane // rays
     sample = lane % rays
-    rng = mi.PCG32(size=count * rays, initstate=mi.UInt64(seed * 0x2545F4914F6CDD1D % (1 << 64)))
+    rng = make_rng(count * rays, seed, stream=1)
     local, j, k = stratified_directions(m_theta, n_phi, sample, rng.next_float32(), rng.next_float32())
     op = dr.gather(mi.Point3f, p, owner)
     on = dr.gather(mi.Vector3f, n, owner)
     direction = _frame(on).to_world(local)
-    ray = mi.Ray3f(op + on * offset, direction)
+    ray = mi.Ray3f(op + on * opaque_float(offset), direction)
     radiance, distance = trace_gather_rays(scene, source, ray, rng, mi.Bool(True))
     dr.eval(radiance, distance)
     return owner, j, k, local, radiance, distance
@@ -237,10 +238,10 @@ def harmonic_mean_distance(scene, p: mi.Point3f, n: mi.Vector3f, strata, seed: i
         return mi.Float()
     lane = dr.arange(mi.UInt32, count * rays)
     owner = lane // rays
-    rng = mi.PCG32(size=count * rays, initstate=mi.UInt64(seed * 0x2545F4914F6CDD1D % (1 << 64)))
+    rng = make_rng(count * rays, seed, stream=2)
     local, _, _ = stratified_directions(m_theta, n_phi, lane % rays, rng.next_float32(), rng.next_float32())
     on = dr.gather(mi.Vector3f, n, owner)
-    ray = mi.Ray3f(dr.gather(mi.Point3f, p, owner) + on * offset, _frame(on).to_world(local))
+    ray = mi.Ray3f(dr.gather(mi.Point3f, p, owner) + on * opaque_float(offset), _frame(on).to_world(local))
     si = scene.ray_intersect_preliminary(ray, mi.Bool(True))
     inv = dr.select(si.is_valid(), dr.rcp(dr.maximum(si.t, 1e-30)), 0.0)
     total = dr.block_sum(inv, rays)

@@ -44,7 +44,7 @@ def cell_of(p: mi.Point3f, origin: mi.Point3f, inv_cell_size) -> mi.Vector3i:
     return mi.Vector3i(c)
 
 
-def hash_cell(c: mi.Vector3i, mask: int) -> mi.UInt32:
+def hash_cell(c: mi.Vector3i, mask) -> mi.UInt32:
     """Bucket index of integer cell ``c`` in a table of ``mask + 1`` buckets."""
     u = mi.Vector3u(c)
     h = (u.x * _HASH_PRIMES[0]) ^ (u.y * _HASH_PRIMES[1]) ^ (u.z * _HASH_PRIMES[2])
@@ -136,12 +136,12 @@ class PointGrid:
         if self.count == 0 or n_lanes == 0:
             return state
         active = mi.Bool(active)
-        radius = mi.Float(radius)
+        radius = dr.opaque(mi.Float, radius) if isinstance(radius, (int, float)) else mi.Float(radius)
         radius2 = radius * radius
         inv = dr.opaque(mi.Float, 1.0 / self.cell_size)
         origin = self.origin
         center = cell_of(query, origin, inv)
-        mask = self.table_mask
+        mask = dr.opaque(mi.UInt32, self.table_mask)
 
         # Loop state: which of the 27 cells is being scanned, the current sorted entry
         # and the end of the current bucket. The scan is flattened into one loop so that
@@ -225,12 +225,12 @@ class BallGrid:
         # Expand balls into (cell, ball) pairs: pair p belongs to the last ball whose
         # first pair is <= p.
         pair = dr.arange(mi.UInt32, total)
-        # first[] is non-decreasing and every ball has >= 1 pair, so the owner of pair
-        # p is one less than the first index i in [1, n] with first[i] > p (or i = n).
-        def starts_at_or_before(i):
-            return (i < n) & (dr.gather(mi.UInt32, first, i, i < n) <= pair)
-
-        owner = mi.UInt32(dr.binary_search(1, n, starts_at_or_before)) - 1
+        # Every ball has >= 1 pair, so first[] is strictly increasing: mark each ball's
+        # first pair with the ball's index, and a running maximum gives every pair its
+        # owner (a prefix reduction, which bakes no array size into the kernel).
+        marks = dr.zeros(mi.UInt32, total)
+        dr.scatter(marks, dr.arange(mi.UInt32, n), first)
+        owner = dr.prefix_reduce(dr.ReduceOp.Max, marks, exclusive=False)
         local = pair - dr.gather(mi.UInt32, first, owner)
         # max(., 1): integer division by a zero in an unused tail lane of a SIMD packet
         # would raise SIGFPE on x86.
@@ -261,7 +261,7 @@ class BallGrid:
             return state
         inv = dr.opaque(mi.Float, 1.0 / self.cell_size)
         c = cell_of(query, self.origin, inv)
-        bucket = hash_cell(c, self.table_mask)
+        bucket = hash_cell(c, dr.opaque(mi.UInt32, self.table_mask))
         active = mi.Bool(active)
         entry = dr.gather(mi.UInt32, self.cell_start, bucket, active)
         end = dr.gather(mi.UInt32, self.cell_start, bucket + 1, active)

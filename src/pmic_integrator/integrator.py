@@ -12,6 +12,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import cache as cache_mod
+from ._jit import opaque_float, rng as make_rng
 from .cache import CacheRecords, RecordIndex
 from .gather import GatherSource, diffuse_response, non_diffuse_context, trace_gather_rays
 from .hashgrid import PointGrid
@@ -419,7 +420,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         r_min, r_max = self._radius_bounds()
         pilot = cache_mod.harmonic_mean_distance(scene, cand_p, cand_n, cache_mod.PILOT_STRATA,
                                                  self.seed + 17, offset)
-        pilot = dr.clip(pilot, r_min, r_max)
+        pilot = dr.clip(pilot, opaque_float(r_min), opaque_float(r_max))
         dr.eval(pilot)
         selected, rounds = cache_mod.place_records(cand_p, cand_n, pilot, self.max_error, existing)
         p = dr.gather(mi.Point3f, cand_p, selected)
@@ -442,7 +443,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         idx = dr.arange(mi.UInt32, w * h)
         pos = mi.Vector2f(mi.Float(idx % w) + 0.5, mi.Float(idx // w) + 0.5) / mi.Vector2f(w, h)
         ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5), pos, mi.Point2f(0.5, 0.5))
-        rng = mi.PCG32(size=w * h, initstate=mi.UInt64(self.seed + 101))
+        rng = make_rng(w * h, self.seed, stream=101)
         p, n, found = _first_diffuse_hit(scene, mi.Ray3f(ray), rng)
         keep = dr.compress(found)
         return dr.gather(mi.Point3f, p, keep), dr.gather(mi.Vector3f, n, keep)
@@ -595,9 +596,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
     def _final_gather_ray(self, scene, sampler, si, n, active):
         """One cosine-distributed gather ray reading precomputed irradiance: E ≈ π L."""
         local = mi.warp.square_to_cosine_hemisphere(sampler.next_2d())
-        ray = mi.Ray3f(si.p + n * (RAY_OFFSET_DIAGONAL * self._prepared.info.diagonal),
+        ray = mi.Ray3f(si.p + n * opaque_float(RAY_OFFSET_DIAGONAL * self._prepared.info.diagonal),
                        mi.Frame3f(n).to_world(local))
-        rng = mi.PCG32(size=dr.width(si.p), initstate=mi.UInt64(self.seed + 7))
+        rng = make_rng(dr.width(si.p), self.seed, stream=7)
         radiance, _ = trace_gather_rays(scene, self._source(), ray, rng, active)
         return radiance * math.pi
 

@@ -58,7 +58,7 @@ def estimate_irradiance(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f
     ``skip_specular_paths`` excludes photons of L S* D paths (what a caustic map and
     direct lighting already count).
     """
-    radius = mi.Float(radius)
+    radius = dr.opaque(mi.Float, radius) if isinstance(radius, (int, float)) else mi.Float(radius)
     inv_r2 = dr.rcp(dr.maximum(radius * radius, 1e-30))
     query_n = mi.Vector3f(query_n)
     lanes = dr.width(query_p)

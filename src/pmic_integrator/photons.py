@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
+from ._jit import opaque_u32, rng as make_rng
+
 log = logging.getLogger("pmic")
 
 GLOBAL = "global"
@@ -106,9 +108,8 @@ def _is_specular(flags) -> mi.Bool:
 def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
                  max_store_depth: int):
     """Trace ``n_paths`` light paths; return photon arrays and their path indices."""
-    rng = mi.PCG32(size=n_paths, initstate=mi.UInt64(seed * 0x9E3779B97F4A7C15 % (1 << 64)),
-                   initseq=mi.UInt64(0xDA3E39CB94B95BDB) + mi.UInt64(first_path))
-    path_id = dr.arange(mi.UInt32, n_paths) + first_path
+    rng = make_rng(n_paths, seed, stream=first_path)
+    path_id = dr.arange(mi.UInt32, n_paths) + opaque_u32(first_path)
     ray, flux, _ = scene.sample_emitter_ray(
         mi.Float(0.0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
         mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True))
@@ -200,10 +201,10 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
         if got > remaining:
             # Keep whole paths only: the first P paths of the batch whose photons fit.
             per_path = dr.zeros(mi.UInt32, batch_paths)
-            dr.scatter_add(per_path, 1, path - emitted)
+            dr.scatter_add(per_path, 1, path - opaque_u32(emitted))
             cumulative = dr.cumsum(per_path) if hasattr(dr, "cumsum") else dr.prefix_sum(per_path) + per_path
-            used_paths = int(dr.count(cumulative <= remaining)[0]) if dr.width(cumulative) else 0
-            keep = dr.compress(path < emitted + used_paths)
+            used_paths = int(dr.count(cumulative <= opaque_u32(remaining))[0]) if dr.width(cumulative) else 0
+            keep = dr.compress(path < opaque_u32(emitted + used_paths))
             pos, nrm, pwr, dep, spec = (dr.gather(type(a), a, keep) for a in (pos, nrm, pwr, dep, spec))
             got = dr.width(keep)
         if got:

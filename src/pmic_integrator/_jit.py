@@ -1,0 +1,30 @@
+"""Small Dr.Jit helpers shared by the stages.
+
+Dr.Jit bakes Python numbers into the kernels it compiles, so a value that changes from
+run to run (a seed, a radius derived from the photon count, a batch offset) would make
+every run compile new kernels. These helpers pass such values as *opaque* variables:
+one kernel serves every value.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+_GOLDEN = 0x9E3779B97F4A7C15
+
+
+def opaque_float(value: float) -> mi.Float:
+    return dr.opaque(mi.Float, float(value))
+
+
+def opaque_u32(value: int) -> mi.UInt32:
+    return dr.opaque(mi.UInt32, int(value) & 0xFFFFFFFF)
+
+
+def rng(size: int, seed: int, stream: int = 0) -> mi.PCG32:
+    """``size`` independent PCG32 streams for (``seed``, ``stream``), without baking
+    either number into kernels."""
+    state = (int(seed) * _GOLDEN + 0x853C49E6748FEA9B) % (1 << 64)
+    sequence = (int(stream) * _GOLDEN + 0xDA3E39CB94B95BDB) % (1 << 64)
+    return mi.PCG32(size=size, initstate=dr.opaque(mi.UInt64, state),
+                    initseq=dr.opaque(mi.UInt64, sequence))

@@ -1,0 +1,98 @@
+"""Render a scene with ``pmic`` and with Mitsuba's ``path`` at equal time, and score both.
+
+Timing rules (the same everywhere in the project): every measured render runs after a
+warm-up render of the same configuration in the same process, so kernel compilation is
+reported separately (``compile_s``) and not hidden in, or added to, the timings; time is
+wall-clock from the call to ``mi.render`` until the image is evaluated, and for ``pmic``
+it includes every stage (photons, precomputation, cache, camera pass).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from . import metrics
+
+PATH_INTEGRATOR = {"type": "path", "max_depth": -1}
+
+
+@dataclass
+class RenderResult:
+    """One timed render and its error against the reference."""
+
+    label: str  #: e.g. "pmic" or "path"
+    integrator: dict  #: the mi.load_dict dictionary used
+    spp: int  #: samples per pixel
+    seconds: float  #: wall time of the timed render (after warm-up)
+    compile_s: float  #: extra time of the first, cold render (kernel compilation)
+    rel_mse: float = math.nan  #: mean((img - ref)² / (ref² + 1e-2))
+    rmse: float = math.nan  #: root mean squared error
+    luminance_ratio: float = math.nan  #: mean luminance / the reference's
+    ciede2000: float = math.nan  #: mean CIEDE2000 after a fixed sRGB tone map
+    stats: dict = field(default_factory=dict)  #: scene.integrator().stats, if any
+    image: np.ndarray | None = field(default=None, repr=False)
+
+    def row(self) -> dict:
+        d = asdict(self)
+        d.pop("image")
+        d["stats"] = {k: v for k, v in self.stats.items() if isinstance(v, (int, float, str, list))}
+        return d
+
+
+def timed_render(scene, integrator, spp: int, seed: int = 0):
+    """Render and evaluate; return (image as numpy, seconds)."""
+    start = time.perf_counter()
+    image = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
+    dr.eval(image)
+    dr.sync_thread()
+    seconds = time.perf_counter() - start
+    return np.array(image), seconds
+
+
+def score(result: RenderResult, reference: np.ndarray | None) -> RenderResult:
+    if reference is not None:
+        img = result.image
+        result.rel_mse = metrics.rel_mse(img, reference)
+        result.rmse = metrics.rmse(img, reference)
+        result.luminance_ratio = metrics.luminance_ratio(img, reference)
+        result.ciede2000 = metrics.ciede2000(img, reference)
+    return result
+
+
+def render_measured(scene, spec: dict, spp: int, reference=None, label=None, seed=0,
+                    warmup_spp: int | None = None) -> RenderResult:
+    """Warm-up render, then the timed render, scored against ``reference``.
+
+    For ``pmic`` the warm-up uses a different integrator seed, so that the timed run
+    rebuilds its photon maps and cache (a reused cache would hide their cost).
+    """
+    warm_spec = dict(spec)
+    if spec["type"] == "pmic":
+        warm_spec["seed"] = int(spec.get("seed", 0)) + 1000
+    warm = mi.load_dict(warm_spec)
+    _, cold_seconds = timed_render(scene, warm, warmup_spp or spp, seed + 1)
+    integrator = mi.load_dict(dict(spec))
+    image, seconds = timed_render(scene, integrator, spp, seed)
+    stats = dict(getattr(integrator, "stats", {}) or {})
+    result = RenderResult(label or spec["type"], dict(spec), spp, seconds,
+                          max(0.0, cold_seconds - seconds) if not warmup_spp else math.nan,
+                          stats=stats, image=image)
+    return score(result, reference)
+
+
+def path_at_equal_time(scene, seconds: float, reference=None, seed=0, max_spp=1 << 16) -> RenderResult:
+    """Mitsuba's ``path`` with the spp that fits in ``seconds`` (measured, not guessed)."""
+    integrator = mi.load_dict(dict(PATH_INTEGRATOR))
+    _, cold = timed_render(scene, integrator, 1, seed + 1)  # compiles the kernel
+    _, probe = timed_render(scene, integrator, 4, seed + 2)
+    per_spp = max(probe / 4, 1e-6)
+    spp = int(max(1, min(max_spp, seconds / per_spp)))
+    image, took = timed_render(scene, integrator, spp, seed)
+    result = RenderResult("path", dict(PATH_INTEGRATOR), spp, took, max(0.0, cold - probe / 4),
+                          image=image)
+    return score(result, reference)
