@@ -23,7 +23,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .gather import GatherSource, stratified_directions, trace_gather_rays
-from ._jit import opaque_float, rng as make_rng
+from ._jit import opaque_float, opaque_u32, rng as make_rng
 from .hashgrid import BallGrid
 
 # --- Internal tuning constants -------------------------------------------------------
@@ -66,6 +66,13 @@ class CacheRecords:
         z = mi.Vector3f()
         return CacheRecords(mi.Point3f(), mi.Vector3f(), mi.Float(), mi.Color3f(), (z, z, z), (z, z, z))
 
+    @staticmethod
+    def geometry_only(p: mi.Point3f, n: mi.Vector3f, radius: mi.Float) -> "CacheRecords":
+        """Records with position, normal and radius only: enough for coverage tests."""
+        count = dr.width(radius)
+        z = dr.zeros(mi.Vector3f, count)
+        return CacheRecords(p, n, radius, dr.zeros(mi.Color3f, count), (z, z, z), (z, z, z))
+
     def extend(self, other: "CacheRecords") -> "CacheRecords":
         if self.count == 0:
             return other
@@ -87,7 +94,7 @@ def _join(a, b, dtype):
     na, nb = dr.width(a), dr.width(b)
     out = dr.zeros(dtype, na + nb)
     dr.scatter(out, a, dr.arange(mi.UInt32, na))
-    dr.scatter(out, b, dr.arange(mi.UInt32, nb) + na)
+    dr.scatter(out, b, dr.arange(mi.UInt32, nb) + opaque_u32(na))
     return out
 
 

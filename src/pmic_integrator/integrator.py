@@ -12,7 +12,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import cache as cache_mod
-from ._jit import opaque_float, rng as make_rng
+from ._jit import opaque_float, opaque_u32, rng as make_rng
 from .cache import CacheRecords, RecordIndex
 from .gather import GatherSource, diffuse_response, non_diffuse_context, trace_gather_rays
 from .hashgrid import PointGrid
@@ -31,6 +31,8 @@ MIN_REACH_LOOKUPS = 1.0
 #: Largest record radius as a fraction of the scene's bounding-box diagonal: a
 #: view-independent cache has no pixel footprint to bound it, the scene size does.
 R_MAX_DIAGONAL = 0.08
+#: Candidates walked first, evenly spread, before the ones they leave uncovered.
+PLACEMENT_SUBSET = 32768
 #: Ray origins are pushed off the surface by this fraction of the scene diagonal.
 RAY_OFFSET_DIAGONAL = 1e-5
 #: Photons per caustic estimate relative to ``lookup_size``: caustics are sharper.
@@ -415,17 +417,50 @@ class PMICIntegrator(mi.SamplingIntegrator):
             p.gather_source = GatherSource.build(p.global_map, p.global_grid, p.global_radius)
         return p.gather_source
 
-    def _build_records(self, scene, cand_p, cand_n, existing: RecordIndex | None, offset):
-        """Place records among candidates (Fig. 2), compute them, return the index."""
+    def _place(self, scene, cand_p, cand_n, existing: RecordIndex | None, offset):
+        """Pilot radii, then placement (Fig. 2); returns the chosen (p, n, R), rounds."""
         r_min, r_max = self._radius_bounds()
         pilot = cache_mod.harmonic_mean_distance(scene, cand_p, cand_n, cache_mod.PILOT_STRATA,
                                                  self.seed + 17, offset)
         pilot = dr.clip(pilot, opaque_float(r_min), opaque_float(r_max))
         dr.eval(pilot)
         selected, rounds = cache_mod.place_records(cand_p, cand_n, pilot, self.max_error, existing)
-        p = dr.gather(mi.Point3f, cand_p, selected)
-        n = dr.gather(mi.Vector3f, cand_n, selected)
-        r = dr.gather(mi.Float, pilot, selected)
+        return (dr.gather(mi.Point3f, cand_p, selected), dr.gather(mi.Vector3f, cand_n, selected),
+                dr.gather(mi.Float, pilot, selected)), rounds
+
+    def _build_records(self, scene, cand_p, cand_n, existing: RecordIndex | None, offset):
+        """Place records among candidates (Fig. 2), compute them, return the index.
+
+        With many candidates the walk visits an evenly spread subset first
+        (``PLACEMENT_SUBSET`` of them) and then only the candidates that the subset's
+        records leave uncovered: the same guarantee (every candidate covered), but
+        pilot rays only where they can matter, so the cost no longer grows with the
+        photon count.
+        """
+        count = dr.width(cand_p.x)
+        placed = CacheRecords.empty() if existing is None else existing.records
+        rounds = 0
+        remaining_p, remaining_n = cand_p, cand_n
+        new_p, new_n, new_r = [], [], []
+        if count > 2 * PLACEMENT_SUBSET:
+            stride = -(-count // PLACEMENT_SUBSET)
+            subset = dr.arange(mi.UInt32, -(-count // stride)) * opaque_u32(stride)
+            (p, n, r), k = self._place(scene, dr.gather(mi.Point3f, cand_p, subset),
+                                       dr.gather(mi.Vector3f, cand_n, subset), existing, offset)
+            rounds += k
+            new_p.append(p), new_n.append(n), new_r.append(r)
+            placed = placed.extend(CacheRecords.geometry_only(p, n, r))
+            uncovered = dr.compress(~RecordIndex.build(placed, self.max_error).covered(cand_p, cand_n))
+            remaining_p = dr.gather(mi.Point3f, cand_p, uncovered)
+            remaining_n = dr.gather(mi.Vector3f, cand_n, uncovered)
+        if dr.width(remaining_p.x):
+            prior = RecordIndex.build(placed, self.max_error) if placed.count else None
+            (p, n, r), k = self._place(scene, remaining_p, remaining_n, prior, offset)
+            rounds += k
+            new_p.append(p), new_n.append(n), new_r.append(r)
+        p = _join_all(new_p, mi.Point3f)
+        n = _join_all(new_n, mi.Vector3f)
+        r = _join_all(new_r, mi.Float)
         records = cache_mod.compute_records(scene, self._source(), p, n, r, self.gather_strata,
                                             self.seed + 31 + (existing.records.count if existing else 0),
                                             offset)
@@ -630,6 +665,13 @@ def _first_diffuse_hit(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32):
         bounce += 1
         active &= ~hit & (bs.pdf > 0) & (bounce < 8)
     return p, n, found
+
+
+def _join_all(parts, dtype):
+    out = parts[0] if parts else dtype()
+    for part in parts[1:]:
+        out = cache_mod._join(out, part, dtype)
+    return out
 
 
 def _sorted_map(photons: PhotonMap, radius: float):

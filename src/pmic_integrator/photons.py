@@ -95,7 +95,7 @@ def _concat(parts, dtype):
     for p in parts:
         n = dr.width(p)
         if n:
-            dr.scatter(out, p, dr.arange(mi.UInt32, n) + offset)
+            dr.scatter(out, p, dr.arange(mi.UInt32, n) + opaque_u32(offset))
         offset += n
     return out
 
@@ -139,7 +139,7 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
             out["position"].append(dr.gather(mi.Point3f, si.p, idx))
             out["normal"].append(dr.gather(mi.Vector3f, n, idx))
             out["power"].append(dr.gather(mi.Color3f, flux, idx))
-            out["depth"].append(dr.full(mi.UInt32, bounce, dr.width(idx)))
+            out["depth"].append(dr.zeros(mi.UInt32, dr.width(idx)) + opaque_u32(bounce))
             out["specular"].append(dr.gather(mi.Bool, specular_so_far, idx))
             out["path"].append(dr.gather(mi.UInt32, path_id, idx))
         if bounce == bounces:
