@@ -90,6 +90,27 @@ class CacheRecords:
         return 4 * (3 + 3 + 1 + 3 + 18) * self.count
 
 
+def block_sum(values, block: int):
+    """Sums of consecutive blocks of ``block`` entries, always added in the same order.
+
+    (``dr.block_sum`` may accumulate in a thread-dependent order; a record must come
+    out bit-identical for the same seed.) ``values`` is a Float or a 3-vector array.
+    """
+    dtype = type(values)
+    values = dr.detach(values)
+    dr.eval(values)
+    count = dr.width(values) // block
+    limit = opaque_u32(block)
+    first = dr.arange(mi.UInt32, count) * limit
+
+    def body(i, total):
+        return i + 1, total + dr.gather(dtype, values, first + i)
+
+    _, total = dr.while_loop((dr.zeros(mi.UInt32, count), dr.zeros(dtype, count)),
+                             lambda i, total: i < limit, body, label="block_sum")
+    return total
+
+
 def _join(a, b, dtype):
     na, nb = dr.width(a), dr.width(b)
     out = dr.zeros(dtype, na + nb)
@@ -251,7 +272,7 @@ def harmonic_mean_distance(scene, p: mi.Point3f, n: mi.Vector3f, strata, seed: i
     ray = mi.Ray3f(dr.gather(mi.Point3f, p, owner) + on * opaque_float(offset), _frame(on).to_world(local))
     si = scene.ray_intersect_preliminary(ray, mi.Bool(True))
     inv = dr.select(si.is_valid(), dr.rcp(dr.maximum(si.t, 1e-30)), 0.0)
-    total = dr.block_sum(inv, rays)
+    total = block_sum(inv, rays)
     return rays / dr.maximum(total, 1e-30)
 
 
@@ -265,7 +286,7 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
     rays = m_theta * n_phi
     owner, j, k, local, radiance, distance = _gather_rays(scene, source, p, n, strata, seed, offset)
     # E = π/(MN) Σ L for cosine-weighted stratified sampling.
-    irradiance = dr.block_sum(radiance, rays) * (math.pi / rays)
+    irradiance = block_sum(radiance, rays) * (math.pi / rays)
 
     # Rotational gradient: ∂E/∂(rotation δ) = ∫ L sinθ v(φ) dω, v = n × (dir. of φ),
     # estimated with cosine-weighted samples as π/(MN) Σ L tanθ v(φ).
@@ -310,8 +331,8 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
         dl_k = radiance[c] - l_prev_k[c]
         gt_local = u_k * (theta_term * dl_j) + v_k * (phi_term * dl_k)
         gr_local = v * (rot_w * radiance[c])
-        gt = mi.Vector3f(*(dr.block_sum(frame.to_world(gt_local)[a], rays) for a in range(3)))
-        gr = mi.Vector3f(*(dr.block_sum(frame.to_world(gr_local)[a], rays) for a in range(3)))
+        gt = block_sum(mi.Vector3f(frame.to_world(gt_local)), rays)
+        gr = block_sum(mi.Vector3f(frame.to_world(gr_local)), rays)
         grad_t.append(gt)
         grad_r.append(gr)
 

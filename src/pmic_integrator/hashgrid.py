@@ -1,7 +1,8 @@
 """Hash grids built and queried in Dr.Jit kernels.
 
-Two structures, both built in O(N) by a counting sort over hash buckets (one
-``scatter_inc`` pass, an exclusive prefix sum, one scatter):
+Two structures, both built by sorting entries into hash buckets (bucket counts and
+an exclusive prefix sum give each bucket's range; a stable radix sort, O(N), gives the
+order, so that a grid never depends on thread timing):
 
 * :class:`PointGrid` stores points (photons) in cells whose size is the largest query
   radius; a query visits the 27 cells around the query point. Used for density
@@ -23,6 +24,8 @@ from typing import Any, Callable
 
 import drjit as dr
 import mitsuba as mi
+
+from ._jit import opaque_u32
 
 #: Cell coordinates are clamped to this range so that a far-away query cannot overflow
 #: the int32 cell arithmetic; entries never live there, so clamped cells find nothing.
@@ -51,19 +54,35 @@ def hash_cell(c: mi.Vector3i, mask) -> mi.UInt32:
     return h & mask
 
 
-def _counting_sort(bucket: mi.UInt32, table_size: int):
-    """Return (bucket start offsets [table_size + 1], destination slot per entry)."""
+def cell_key(c: mi.Vector3i) -> mi.UInt32:
+    """The cell's coordinates modulo 1024, packed into 30 bits.
+
+    Two cells with the same key are at least 1024 cells apart on some axis, so among
+    the 27 cells around a query all keys differ: comparing keys tells a candidate of
+    the visited cell from one of another cell in the same bucket, as comparing the
+    full coordinates would (a far-away cell's points fail the distance test anyway).
+    """
+    u = mi.Vector3u(c) & 0x3FF
+    return u.x | (u.y << 10) | (u.z << 20)
+
+
+def _bucket_sort(bucket: mi.UInt32, table_size: int):
+    """Sort entries by bucket. Returns (start offset of each bucket [table_size + 1],
+    order: the entry at each sorted position).
+
+    Counting gives the bucket offsets; the order comes from a stable radix sort rather
+    than from the slots of ``scatter_inc``, whose order within a bucket depends on
+    thread timing: the same photons must always give the same grid, cache and image.
+    """
     counts = dr.zeros(mi.UInt32, table_size)
-    slot = dr.scatter_inc(counts, bucket)
-    dr.eval(counts, slot)
+    dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), bucket)
     starts = dr.prefix_sum(counts)  # exclusive
-    total = dr.width(bucket)
     cell_start = dr.zeros(mi.UInt32, table_size + 1)
     dr.scatter(cell_start, starts, dr.arange(mi.UInt32, table_size))
-    dr.scatter(cell_start, mi.UInt32(total), mi.UInt32(table_size))
-    destination = dr.gather(mi.UInt32, starts, bucket) + slot
-    dr.eval(cell_start, destination)
-    return cell_start, destination
+    dr.scatter(cell_start, opaque_u32(dr.width(bucket)), opaque_u32(table_size))
+    order = dr.argsort(bucket)
+    dr.eval(cell_start, order)
+    return cell_start, order
 
 
 def _offset_27(j: mi.UInt32) -> mi.Vector3i:
@@ -86,6 +105,7 @@ class PointGrid:
     order: mi.UInt32 | None  #: original index of the i-th sorted point (None: identity)
     positions: mi.Point3f  #: sorted point positions (a copy, for coherent gathers)
     count: int  #: number of points
+    keys: mi.UInt32 = None  #: :func:`cell_key` of each sorted point's cell
 
     @staticmethod
     def build(positions: mi.Point3f, cell_size: float, origin=None) -> "PointGrid":
@@ -105,31 +125,32 @@ class PointGrid:
                              mi.Point3f(), 0)
         inv = dr.opaque(mi.Float, 1.0 / cell_size)
         bucket = hash_cell(cell_of(positions, origin, inv), table_size - 1)
-        cell_start, destination = _counting_sort(bucket, table_size)
-        order = dr.zeros(mi.UInt32, n)
-        dr.scatter(order, dr.arange(mi.UInt32, n), destination)
+        cell_start, order = _bucket_sort(bucket, table_size)
         sorted_positions = dr.gather(mi.Point3f, positions, order)
-        dr.eval(order, sorted_positions)
+        keys = cell_key(cell_of(sorted_positions, origin, inv))
+        dr.eval(order, sorted_positions, keys)
         return PointGrid(origin, cell_size, table_size - 1, cell_start, order,
-                         sorted_positions, n)
+                         sorted_positions, n, keys)
 
     def sorted_in_place(self) -> "PointGrid":
         """The same grid for data already permuted by ``order`` (queries then report
         sorted indices, and every gather they lead to is cache-coherent)."""
         return PointGrid(self.origin, self.cell_size, self.table_mask, self.cell_start, None,
-                         self.positions, self.count)
+                         self.positions, self.count, self.keys)
 
     def for_each_neighbor(self, query: mi.Point3f, radius, state: Any,
                           visit: Callable[[Any, mi.UInt32, mi.Float, mi.Bool], Any],
                           active=True, finished: Callable[[Any], mi.Bool] | None = None,
-                          label: str = "point_grid_query"):
+                          label: str = "point_grid_query", with_offset: bool = False):
         """Call ``visit(state, index, dist2, valid)`` for every point within ``radius``.
 
         ``index`` is the point's original index, ``dist2`` its squared distance to
         ``query``, and ``valid`` the mask of lanes for which the candidate is really
         inside the radius (``dist2 < radius²``). ``visit`` returns the new state.
         ``radius`` (scalar or per lane) must not exceed ``cell_size``. ``finished``, if
-        given, stops a lane early (e.g. once a covering record was found).
+        given, stops a lane early (e.g. once a covering record was found). With
+        ``with_offset``, ``visit`` also receives ``point - query`` (already at hand, so
+        the visitor need not gather the position again).
         """
         query = mi.Point3f(query)
         n_lanes = dr.width(query.x)
@@ -143,40 +164,35 @@ class PointGrid:
         center = cell_of(query, origin, inv)
         mask = dr.opaque(mi.UInt32, self.table_mask)
 
-        # Loop state: which of the 27 cells is being scanned, the current sorted entry
-        # and the end of the current bucket. The scan is flattened into one loop so that
-        # lanes with different bucket sizes do not wait for each other per cell.
-        cell_j = dr.zeros(mi.UInt32, n_lanes)
-        entry = dr.zeros(mi.UInt32, n_lanes)
-        end = dr.zeros(mi.UInt32, n_lanes)
+        # One loop per neighbour cell, unrolled in Python: the loop body then holds
+        # only the per-candidate work (no per-iteration cell bookkeeping).
+        for j in range(27):
+            offset = mi.Vector3i((j % 3) - 1, ((j // 3) % 3) - 1, (j // 9) - 1)
+            visited = center + offset
+            bucket = hash_cell(visited, mask)
+            visited_key = cell_key(visited)
+            entry = dr.gather(mi.UInt32, self.cell_start, bucket, active)
+            end = dr.gather(mi.UInt32, self.cell_start, bucket + 1, active)
 
-        def cond(cell_j, entry, end, active, state):
-            running = active & ((entry < end) | (cell_j < 27))
-            if finished is not None:
-                running &= ~finished(state)
-            return running
+            def cond(entry, end, state):
+                running = active & (entry < end)
+                if finished is not None:
+                    running &= ~finished(state)
+                return running
 
-        def body(cell_j, entry, end, active, state):
-            in_bucket = entry < end
-            visited_cell = center + _offset_27(cell_j - 1)
-            p = dr.gather(mi.Point3f, self.positions, entry, in_bucket)
-            same_cell = dr.all(cell_of(p, origin, inv) == visited_cell)
-            d = p - query
-            dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
-            valid = in_bucket & same_cell & (dist2 < radius2)
-            index = entry if self.order is None else dr.gather(mi.UInt32, self.order, entry, valid)
-            state = visit(state, index, dist2, valid)
-            entry = dr.select(in_bucket, entry + 1, entry)
-            # Lanes that exhausted their bucket move on to the next neighbour cell.
-            advance = ~in_bucket
-            bucket = hash_cell(center + _offset_27(cell_j), mask)
-            entry = dr.select(advance, dr.gather(mi.UInt32, self.cell_start, bucket, advance), entry)
-            end = dr.select(advance, dr.gather(mi.UInt32, self.cell_start, bucket + 1, advance), end)
-            cell_j = dr.select(advance, cell_j + 1, cell_j)
-            return cell_j, entry, end, active, state
+            def body(entry, end, state):
+                same_cell = dr.gather(mi.UInt32, self.keys, entry) == visited_key
+                p = dr.gather(mi.Point3f, self.positions, entry, same_cell)
+                d = p - query
+                dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
+                valid = same_cell & (dist2 < radius2)
+                index = entry if self.order is None else dr.gather(mi.UInt32, self.order, entry, valid)
+                state = visit(state, index, dist2, valid, d) if with_offset else \
+                    visit(state, index, dist2, valid)
+                return entry + 1, end, state
 
-        _, _, _, _, state = dr.while_loop(
-            state=(cell_j, entry, end, active, state), cond=cond, body=body, label=label)
+            _, _, state = dr.while_loop(state=(entry, end, state), cond=cond, body=body,
+                                        label=f"{label}_cell{j}")
         return state
 
 
@@ -240,11 +256,9 @@ class BallGrid:
         cell = dr.gather(mi.Vector3i, cmin, owner) + mi.Vector3i(li % sx, (li // sx) % sy, li // (sx * sy))
         table_size = _next_pow2(max(total, 1))
         bucket = hash_cell(cell, table_size - 1)
-        cell_start, destination = _counting_sort(bucket, table_size)
-        ball = dr.zeros(mi.UInt32, total)
-        dr.scatter(ball, owner, destination)
-        sorted_cell = dr.zeros(mi.Vector3i, total)
-        dr.scatter(sorted_cell, cell, destination)
+        cell_start, order = _bucket_sort(bucket, table_size)
+        ball = dr.gather(mi.UInt32, owner, order)
+        sorted_cell = dr.gather(mi.Vector3i, cell, order)
         dr.eval(ball, sorted_cell)
         return BallGrid(origin, cell_size, table_size - 1, cell_start, ball, sorted_cell, n, total)
 

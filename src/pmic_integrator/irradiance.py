@@ -37,12 +37,13 @@ def lookup_radius(surface_area: float, photons: int, per_estimate: int) -> float
     return math.sqrt(per_estimate * surface_area / (math.pi * photons))
 
 
-def _compatible(photons: PhotonMap, index, dist2, valid, query_p, query_n, radius):
-    """Mask of candidate photons that lie on the query's surface, on its side."""
-    p = dr.gather(mi.Point3f, photons.position, index, valid)
+def _compatible(photons: PhotonMap, index, offset, valid, query_n, radius):
+    """Mask of candidate photons that lie on the query's surface, on its side
+    (``offset``: photon position − query position)."""
+    plane = dr.abs(dr.dot(offset, query_n))
+    valid &= plane < PLANE_TOLERANCE * radius
     n = dr.gather(mi.Vector3f, photons.normal, index, valid)
-    plane = dr.abs(dr.dot(p - query_p, query_n))
-    return valid & (dr.dot(n, query_n) > NORMAL_COSINE) & (plane < PLANE_TOLERANCE * radius)
+    return valid & (dr.dot(n, query_n) > NORMAL_COSINE)
 
 
 def estimate_irradiance(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
@@ -63,8 +64,8 @@ def estimate_irradiance(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f
     query_n = mi.Vector3f(query_n)
     lanes = dr.width(query_p)
 
-    def visit(total, index, dist2, valid):
-        ok = _compatible(photons, index, dist2, valid, query_p, query_n, radius)
+    def visit(total, index, dist2, valid, offset):
+        ok = _compatible(photons, index, offset, valid, query_n, radius)
         if min_depth is not None or max_depth is not None:
             depth = dr.gather(mi.UInt32, photons.depth, index, ok)
             if min_depth is not None:
@@ -78,7 +79,7 @@ def estimate_irradiance(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f
         return dr.select(ok, total + power * w, total)
 
     total = grid.for_each_neighbor(query_p, radius, dr.zeros(mi.Color3f, lanes), visit,
-                                   active=active, label="photon_density_estimate")
+                                   active=active, label="photon_density_estimate", with_offset=True)
     return total * (3.0 * dr.inv_pi) * inv_r2
 
 
@@ -111,13 +112,13 @@ def nearest_photon(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
     lanes = dr.width(query_p)
     query_n = mi.Vector3f(query_n)
 
-    def visit(state, index, dist2, valid):
+    def visit(state, index, dist2, valid, offset):
         best_d2, best = state
-        ok = _compatible(photons, index, dist2, valid, query_p, query_n, radius)
+        ok = _compatible(photons, index, offset, valid & (dist2 < best_d2), query_n, radius)
         closer = ok & (dist2 < best_d2)
         return dr.select(closer, dist2, best_d2), dr.select(closer, index, best)
 
     init = (dr.full(mi.Float, dr.inf, lanes), dr.zeros(mi.UInt32, lanes))
     best_d2, best = grid.for_each_neighbor(query_p, radius, init, visit, active=active,
-                                           label="nearest_photon")
+                                           label="nearest_photon", with_offset=True)
     return best, dr.isfinite(best_d2)
