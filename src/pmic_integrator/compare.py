@@ -64,24 +64,25 @@ def score(result: RenderResult, reference: np.ndarray | None) -> RenderResult:
     return result
 
 
-def render_measured(scene, spec: dict, spp: int, reference=None, label=None, seed=0,
-                    warmup_spp: int | None = None) -> RenderResult:
-    """Warm-up render, then the timed render, scored against ``reference``.
+def render_measured(scene, spec: dict, spp: int, reference=None, label=None, seed=0) -> RenderResult:
+    """A 1-spp warm-up render, then the timed render, scored against ``reference``.
 
-    For ``pmic`` the warm-up uses a different integrator seed, so that the timed run
+    For ``pmic`` the warm-up uses another integrator seed, so that the timed run
     rebuilds its photon maps and cache (a reused cache would hide their cost).
+    ``compile_s`` is the warm-up's time minus what the timed run's stages would take
+    at 1 spp: the cost of compiling kernels on a first run.
     """
     warm_spec = dict(spec)
     if spec["type"] == "pmic":
         warm_spec["seed"] = int(spec.get("seed", 0)) + 1000
-    warm = mi.load_dict(warm_spec)
-    _, cold_seconds = timed_render(scene, warm, warmup_spp or spp, seed + 1)
+    _, cold_seconds = timed_render(scene, mi.load_dict(warm_spec), 1, seed + 1)
     integrator = mi.load_dict(dict(spec))
     image, seconds = timed_render(scene, integrator, spp, seed)
     stats = dict(getattr(integrator, "stats", {}) or {})
+    render_s = stats.get("time_render", seconds)
+    one_spp = seconds - render_s + render_s / spp
     result = RenderResult(label or spec["type"], dict(spec), spp, seconds,
-                          max(0.0, cold_seconds - seconds) if not warmup_spp else math.nan,
-                          stats=stats, image=image)
+                          max(0.0, cold_seconds - one_spp), stats=stats, image=image)
     return score(result, reference)
 
 

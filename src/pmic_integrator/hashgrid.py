@@ -132,6 +132,11 @@ class PointGrid:
         return PointGrid(origin, cell_size, table_size - 1, cell_start, order,
                          sorted_positions, n, keys)
 
+    def nbytes(self) -> int:
+        """Memory held by the grid's own arrays."""
+        per_point = 12 + 4 + (4 if self.order is not None else 0)
+        return per_point * self.count + 4 * (self.table_mask + 2)
+
     def sorted_in_place(self) -> "PointGrid":
         """The same grid for data already permuted by ``order`` (queries then report
         sorted indices, and every gather they lead to is cache-coherent)."""

@@ -513,7 +513,12 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
     def _publish_stats(self):
         p = self._prepared
-        self.stats["memory_photons_bytes"] = p.global_map.nbytes() + p.caustic_map.nbytes()
+        grids = [g for g in (p.global_grid, p.caustic_grid) if g is not None]
+        photon_bytes = p.global_map.nbytes() + p.caustic_map.nbytes() + sum(g.nbytes() for g in grids)
+        if p.gather_source is not None and p.gather_source.fine_grid is not None:
+            photon_bytes += p.gather_source.fine_photons.nbytes() + p.gather_source.fine_grid.nbytes()
+        # Photon maps, their hash grids and the gather lookup copy, all included.
+        self.stats["memory_photons_bytes"] = photon_bytes
         self.stats["memory_records_bytes"] = p.index.records.nbytes() if p.index else 0
         if self.method != "pmic":
             self.stats.setdefault("records", 0)

@@ -1,0 +1,94 @@
+"""The paper's Table 1, reproduced: render time by number of global photons.
+
+Cornell box at 512² (the paper's scale), global photons 10k…50k as in the paper plus
+100k and 1M; ``photon_map`` with 500 photons per estimate (as in the paper),
+``irradiance_cache`` and ``pmic`` with max error 1.0 (as in the paper) and ``pmic`` at
+its defaults. For each: total time (every stage, after a warm-up), time per stage,
+record count and relMSE against the path-traced reference.
+
+    python benchmarks/table1.py                 # 512², ~10 minutes on 2 cores
+    python benchmarks/table1.py --quick         # 128², 10k and 20k photons
+
+Writes benchmarks/results/table1_<res>.json and .md.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import pmic_integrator  # noqa: F401
+import mitsuba as mi
+
+RESULTS = Path(__file__).resolve().parent / "results"
+PHOTONS = {"full": [10_000, 20_000, 30_000, 40_000, 50_000, 100_000, 1_000_000],
+           "quick": [10_000, 20_000]}
+METHODS = [
+    ("photon_map (500/estimate)", {"method": "photon_map", "lookup_size": 500}),
+    ("irradiance_cache (a = 1.0)", {"method": "irradiance_cache", "max_error": 1.0}),
+    ("pmic (a = 1.0)", {"method": "pmic", "max_error": 1.0}),
+    ("pmic (defaults)", {"method": "pmic"}),
+]
+PAPER = {  # seconds, Table 1 of Gu & Wang (2010), Core Duo E8400
+    "photon_map (500/estimate)": [398.3, 555.1, 725.3, 888.1, 1028.6],
+    "irradiance_cache (a = 1.0)": [144.2, 162.8, 182.7, 193.5, 201.3],
+    "pmic (a = 1.0)": [94.3, 163.5, 234.2, 301.5, 357.7],
+}
+
+
+def main(argv=None):
+    from pmic_integrator import compare, scenes
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--resolution", type=int, default=512)
+    parser.add_argument("--spp", type=int, default=16, help="camera samples per pixel (all methods)")
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    mode = "quick" if args.quick else "full"
+    resolution = 128 if args.quick else args.resolution
+    mi.set_variant("llvm_ad_rgb")
+    reference = scenes.load_reference("cornell_box", resolution)
+    scene = scenes.load_scene("cornell_box", resolution=resolution, spp=args.spp)
+    rows = []
+    for label, params in METHODS:
+        for photons in PHOTONS[mode]:
+            spec = {"type": "pmic", "global_photons": photons, **params}
+            r = compare.render_measured(scene, spec, args.spp, reference, label=label)
+            s = r.stats
+            row = {"method": label, "global_photons": photons, "total_s": r.seconds,
+                   "compile_s": r.compile_s, "rel_mse": r.rel_mse, "luminance": r.luminance_ratio,
+                   "records": s.get("records", 0) + s.get("records_fallback", 0),
+                   **{k: s.get(k, 0.0) for k in ("time_photons", "time_precompute", "time_cache",
+                                                 "time_cache_view", "time_render")}}
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    stem = f"table1_{resolution}" + ("_quick" if args.quick else "")
+    command = "python benchmarks/table1.py " + " ".join(argv or sys.argv[1:])
+    (args.out / f"{stem}.json").write_text(json.dumps({"command": command, "spp": args.spp,
+                                                        "resolution": resolution, "rows": rows}, indent=2))
+    photons = PHOTONS[mode]
+    md = [f"# Table 1 at {resolution}², {args.spp} spp", "", f"`{command}`", "",
+          "Total time in seconds (every stage, after a warm-up); relMSE in brackets.", "",
+          "| method | " + " | ".join(f"{p // 1000}k" for p in photons) + " |",
+          "|---|" + "---|" * len(photons)]
+    for label, _ in METHODS:
+        cells = [f"{r['total_s']:.2f} ({r['rel_mse']:.1e})" for r in rows if r["method"] == label]
+        md.append(f"| {label} | " + " | ".join(cells) + " |")
+    for label, times in PAPER.items():
+        md.append(f"| paper: {label} | " + " | ".join(f"{t}" for t in times) +
+                  " | —" * (len(photons) - len(times)) + " |")
+    md += ["", "Per stage (seconds): photons / precompute / cache / camera records / render; records.", "",
+           "| method | photons | stages | records |", "|---|---|---|---|"]
+    for r in rows:
+        md.append(f"| {r['method']} | {r['global_photons']} | {r['time_photons']:.2f} / "
+                  f"{r['time_precompute']:.2f} / {r['time_cache']:.2f} / {r['time_cache_view']:.2f} / "
+                  f"{r['time_render']:.2f} | {r['records']} |")
+    (args.out / f"{stem}.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
+if __name__ == "__main__":
+    main()
