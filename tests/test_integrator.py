@@ -207,3 +207,32 @@ def test_every_emitter_type_traces_photons():
         stats = scene.integrator().stats
         assert np.isfinite(image).all(), name
         assert stats["photons_global"] == 5000, name
+
+
+def test_unusable_llvm_loaded_first_gives_one_clear_sentence():
+    code = textwrap.dedent("""
+        import os
+        os.environ.pop("DRJIT_LIBLLVM_PATH", None)
+        import drjit, mitsuba as mi
+        import warnings
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            import pmic_integrator
+        print("LOADED", pmic_integrator._llvm._loaded_llvm())
+        print("WARNED", [str(w.message) for w in caught])
+        mi.set_variant("llvm_ad_rgb")
+        try:
+            mi.load_dict({"type": "pmic"})
+            print("LOADED-PMIC")
+        except Exception as e:
+            print("REFUSED", e)
+        """)
+    env = {k: v for k, v in __import__("os").environ.items() if k != "DRJIT_LIBLLVM_PATH"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
+    loaded = [l for l in out.stdout.splitlines() if l.startswith("LOADED ")]
+    major = pmic_integrator._llvm._llvm_major(loaded[0]) if loaded and "None" not in loaded[0] else None
+    if major is None or major >= pmic_integrator._llvm.MIN_LLVM_MAJOR:
+        pytest.skip(f"no old system LLVM is loaded by default here ({loaded})")
+    warned = [l for l in out.stdout.splitlines() if l.startswith("WARNED")][0]
+    assert "cannot compile Dr.Jit 1.5 kernels" in warned  # the warning at import
+    assert "REFUSED" in out.stdout and "import pmic_integrator before drjit" in out.stdout
