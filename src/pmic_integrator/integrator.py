@@ -173,6 +173,11 @@ class PMICIntegrator(mi.SamplingIntegrator):
          - 0 (auto)
          - Bound on emitted light paths per map (auto: 100 × the photon count, at least
            4 M). A warning is given when fewer than half the photons were stored.
+       * - ``direct_samples``
+         - int
+         - 1
+         - Emitter samples (shadow rays) per camera vertex: cheaper than more camera
+           samples when direct-light noise dominates.
        * - ``seed``
          - int
          - 0
@@ -210,6 +215,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         self.gather_rays = int(props.get("gather_rays", 256))
         self.final_gather = bool(props.get("final_gather", False))
         self.max_photon_paths = int(props.get("max_photon_paths", 0))
+        self.direct_samples = int(props.get("direct_samples", 1))
         self.seed = int(props.get("seed", 0))
 
         _check("method", self.method, self.method in METHODS, f"one of {', '.join(METHODS)}")
@@ -232,6 +238,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         _check("max_photon_paths", self.max_photon_paths, self.max_photon_paths >= 0,
                "an integer >= 0 (0: automatic)")
         _check("seed", self.seed, self.seed >= 0, "an integer >= 0")
+        _check("direct_samples", self.direct_samples, 1 <= self.direct_samples <= 1024,
+               "an integer in [1, 1024]")
 
         # M×N strata with N ≈ πM, as Ward & Heckbert recommend.
         m_theta = max(2, int(round(math.sqrt(self.gather_rays / math.pi))))
@@ -587,13 +595,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
             # Direct light by emitter sampling: the diffuse lobe takes all of it (it is
             # never BSDF-sampled); the other lobes share it with BSDF sampling by MIS.
             active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth)
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
-            active_em &= ds.pdf != 0.0
-            wo = si.to_local(ds.d)
-            f_diffuse = bsdf.eval(ctx_diffuse, si, wo, active_em)
-            f_rest, pdf_rest = bsdf.eval_pdf(ctx_rest, si, wo, active_em)
-            mis_em = dr.select(ds.delta, 1.0, _mis_weight(ds.pdf, pdf_rest))
-            result += dr.select(active_em, throughput * em_weight * (f_diffuse + f_rest * mis_em), 0.0)
+            direct, sampler = self._direct_light(scene, sampler, si, bsdf, active_em,
+                                                 ctx_diffuse, ctx_rest)
+            result += throughput * direct
 
             # Light that bounced before reaching a diffuse lobe: cache + caustics.
             diffuse = active_next & mi.has_flag(flags, mi.BSDFFlags.Diffuse) & mi.Bool(use_indirect)
@@ -632,6 +636,30 @@ class PMICIntegrator(mi.SamplingIntegrator):
         result = state[4]
         result = dr.select(dr.all(dr.isfinite(result)), result, 0.0)
         return result, mi.Bool(True), []
+
+    def _direct_light(self, scene, sampler, si, bsdf, active, ctx_diffuse, ctx_rest):
+        """Average of ``direct_samples`` emitter samples (shadow rays) at ``si``."""
+
+        def one_sample(sampler):
+            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active)
+            ok = active & (ds.pdf != 0.0)
+            wo = si.to_local(ds.d)
+            f_diffuse = bsdf.eval(ctx_diffuse, si, wo, ok)
+            f_rest, pdf_rest = bsdf.eval_pdf(ctx_rest, si, wo, ok)
+            mis = dr.select(ds.delta, 1.0, _mis_weight(ds.pdf, pdf_rest))
+            return dr.select(ok, em_weight * (f_diffuse + f_rest * mis), 0.0)
+
+        if self.direct_samples == 1:
+            return one_sample(sampler), sampler
+
+        def body(k, total, sampler):
+            return k + 1, total + one_sample(sampler), sampler
+
+        _, total, sampler = dr.while_loop(
+            (dr.zeros(mi.UInt32, dr.width(si.p)), dr.zeros(mi.Spectrum, dr.width(si.p)), sampler),
+            lambda k, total, sampler: active & (k < self.direct_samples), body,
+            label="pmic_direct_light")
+        return total / self.direct_samples, sampler
 
     def _final_gather_ray(self, scene, sampler, si, n, active):
         """One cosine-distributed gather ray reading precomputed irradiance: E ≈ π L."""
