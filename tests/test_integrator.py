@@ -236,3 +236,18 @@ def test_unusable_llvm_loaded_first_gives_one_clear_sentence():
     warned = [l for l in out.stdout.splitlines() if l.startswith("WARNED")][0]
     assert "cannot compile Dr.Jit 1.5 kernels" in warned  # the warning at import
     assert "REFUSED" in out.stdout and "import pmic_integrator before drjit" in out.stdout
+
+
+def test_photon_map_final_gather_and_direct_samples_agree_with_path():
+    scene = mi.load_dict(small_cornell(resolution=24))
+    ref = np.array(mi.render(scene, integrator=mi.load_dict({"type": "path"}), spp=1024))
+    means = {}
+    for name, params in {"final_gather": {"method": "photon_map", "final_gather": True},
+                         "pmic": {}, "pmic_direct4": {"direct_samples": 4}}.items():
+        integrator = mi.load_dict({"type": "pmic", "global_photons": 200_000, **params})
+        image = np.array(mi.render(scene, integrator=integrator, spp=64))
+        assert np.isfinite(image).all()
+        means[name] = image.mean() / ref.mean()
+    assert abs(means["final_gather"] - 1) < 0.02, means
+    assert abs(means["pmic"] - 1) < 0.02, means
+    assert abs(means["pmic_direct4"] / means["pmic"] - 1) < 0.005, means

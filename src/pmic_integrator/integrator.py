@@ -402,6 +402,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
             self._cache_builds += 1
         elif self.method == "pmic":
             skipped.append("cache: no global photons")
+        if self.method == "photon_map" and self.final_gather and global_map.count:
+            self._source()  # built here: the camera kernel may not build grids
         dr.sync_thread()
         self._prepared.index = index
         stats["time_cache"] = time.perf_counter() - t0
