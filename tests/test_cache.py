@@ -111,20 +111,25 @@ def test_interpolation_matches_brute_force_ward_formula():
 
     want = np.zeros((500, 3))
     want_cov = np.zeros(500, bool)
-    a2 = a * cache.BACKUP_REACH
+    backup_used = 0
     for q in range(500):
-        ok = _covers_np(x[q], qn[q], p, nrm, r, a2)
         err = np.linalg.norm(x[q] - p, axis=1) / r + np.sqrt(np.maximum(0, 1 - nrm @ qn[q]))
         inv = 1.0 / np.maximum(err, cache.MIN_ERROR)
-        # Ward's weight shifted to zero at the reach, plus the small backup term.
-        w = (np.maximum(inv - 1.0 / a, 0.0) + cache.BACKUP_WEIGHT * np.maximum(inv - 1.0 / a2, 0.0)) * ok
+        # Ward's weight shifted to zero at the reach; where no record reaches the
+        # point, the same with the backup reach.
+        for reach in (a, a * cache.BACKUP_REACH):
+            w = np.maximum(inv - 1.0 / reach, 0.0) * _covers_np(x[q], qn[q], p, nrm, r, reach)
+            if w.sum() > 0:
+                break
         if w.sum() <= 0:
             continue
+        backup_used += reach != a
         want_cov[q] = True
         rot = np.cross(nrm, qn[q])
         ext = np.stack([e[:, c] + ((x[q] - p) * gt[c]).sum(1) + (rot * gr[c]).sum(1) for c in range(3)], 1)
         ext = np.maximum(ext, 0.0)
         want[q] = (w[:, None] * ext).sum(0) / w.sum()
+    assert backup_used > 5  # the backup path is exercised
     np.testing.assert_array_equal(covered, want_cov)
     assert 0.5 < want_cov.mean() < 1.0
     np.testing.assert_allclose(got[want_cov], want[want_cov], rtol=2e-4, atol=2e-5)

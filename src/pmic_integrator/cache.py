@@ -35,12 +35,13 @@ MIN_ERROR = 1e-3
 #: A record whose plane is this far (in units of R) in front of the query point is not
 #: used: it sees the scene from the other side of a fold or a thin object.
 IN_FRONT_TOLERANCE = 0.05
-#: Interpolation also sums records within BACKUP_REACH × their reach, with their
-#: weight scaled by BACKUP_WEIGHT: negligible where a record covers the point, but it
-#: fills, continuously, the gaps between records that coverage of the photons (or of
-#: pixel centres) leaves between jittered shading points.
+#: Where no record reaches a shading point (rare: a small gap between the records that
+#: cover the photons and the pixel centres), interpolation falls back to the records
+#: within BACKUP_REACH × their reach, with the same kind of weight.
 BACKUP_REACH = 2.0
-BACKUP_WEIGHT = 0.05
+#: Ball-grid cell edge relative to the mean reach: smaller cells hold fewer balls per
+#: query (each query scans one cell) at the price of more (cell, ball) entries.
+CELL_PER_REACH = 0.5
 #: Gradients are limited so that a first-order extrapolation over the record's reach
 #: cannot go below zero or above twice the record's irradiance.
 GRADIENT_LIMIT = 1.0
@@ -360,40 +361,34 @@ class RecordIndex:
 
     records: CacheRecords
     max_error: float
-    grid: BallGrid
+    grid: BallGrid  #: balls of radius a·R
+    backup_grid: BallGrid  #: balls of radius BACKUP_REACH·a·R, for gaps
 
     @staticmethod
     def build(records: CacheRecords, max_error: float) -> "RecordIndex":
-        reach = records.radius * (max_error * BACKUP_REACH)
-        return RecordIndex(records, max_error, BallGrid.build(records.position, reach))
+        def grid(reach):
+            cell = CELL_PER_REACH * float(dr.mean(reach)[0]) if records.count else None
+            return BallGrid.build(records.position, reach, cell_size=cell)
+
+        reach = records.radius * max_error
+        return RecordIndex(records, max_error, grid(reach), grid(reach * BACKUP_REACH))
 
     def covered(self, x, n, active=True) -> mi.Bool:
         """Is (x, n) within the reach a·R of some record (Ward's test)?"""
         r = self.records
         return _covered_by(r.position, r.normal, r.radius, self.grid, x, n, self.max_error, active)
 
-    def interpolate(self, x: mi.Point3f, n: mi.Vector3f, active=True):
-        """E(x) = Σ wᵢ Eᵢ(x) / Σ wᵢ with gradients; returns ``(E, covered)``.
-
-        wᵢ is :func:`interpolation_weight` with the maximum error a, plus
-        ``BACKUP_WEIGHT`` × the same weight with ``BACKUP_REACH`` × a (see above).
-        ``covered`` is False where no record is even within the backup reach.
-        """
+    def _weighted_sum(self, grid: BallGrid, max_error: float, x, n, active, label):
         r = self.records
         lanes = dr.width(x)
-        a = self.max_error
-        a_backup = a * BACKUP_REACH
-        if r.count == 0:
-            return dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes)
 
         def visit(state, index, valid):
             total, weight_sum = state
             rp = dr.gather(mi.Point3f, r.position, index, valid)
             rn = dr.gather(mi.Vector3f, r.normal, index, valid)
             rr = dr.gather(mi.Float, r.radius, index, valid)
-            ok = valid & covers(x, n, rp, rn, rr, a_backup)
-            err = ward_error(x, n, rp, rn, rr)
-            w = interpolation_weight(err, a) + BACKUP_WEIGHT * interpolation_weight(err, a_backup)
+            ok = valid & covers(x, n, rp, rn, rr, max_error)
+            w = interpolation_weight(ward_error(x, n, rp, rn, rr), max_error)
             ok &= w > 0
             e = dr.gather(mi.Color3f, r.irradiance, index, ok)
             dx = x - rp
@@ -408,8 +403,26 @@ class RecordIndex:
             weight_sum = dr.select(ok, weight_sum + w, weight_sum)
             return total, weight_sum
 
-        total, weight_sum = self.grid.for_each_ball(
-            x, (dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Float, lanes)), visit,
-            active=active, label="cache_interpolation")
+        return grid.for_each_ball(x, (dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Float, lanes)), visit,
+                                  active=active, label=label)
+
+    def interpolate(self, x: mi.Point3f, n: mi.Vector3f, active=True):
+        """E(x) = Σ wᵢ Eᵢ(x) / Σ wᵢ with gradients; returns ``(E, covered)``.
+
+        wᵢ is :func:`interpolation_weight` with the maximum error a; lanes that no
+        record reaches use the records within ``BACKUP_REACH`` × a instead.
+        ``covered`` is False where no record is even within the backup reach.
+        """
+        lanes = dr.width(x)
+        if self.records.count == 0:
+            return dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes)
+        active = mi.Bool(active)
+        total, weight_sum = self._weighted_sum(self.grid, self.max_error, x, n, active,
+                                               "cache_interpolation")
+        gap = active & (weight_sum <= 0)
+        total_b, weight_b = self._weighted_sum(self.backup_grid, self.max_error * BACKUP_REACH,
+                                               x, n, gap, "cache_interpolation_backup")
+        total = dr.select(gap, total_b, total)
+        weight_sum = dr.select(gap, weight_b, weight_sum)
         covered = weight_sum > 0
         return dr.select(covered, total / dr.maximum(weight_sum, 1e-30), 0.0), covered

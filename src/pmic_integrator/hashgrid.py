@@ -219,7 +219,7 @@ class BallGrid:
 
     #: Upper bound on cells per axis that one ball may span; a larger ball makes the
     #: grid use bigger cells instead of exploding the entry count.
-    MAX_SPAN = 8
+    MAX_SPAN = 16
 
     @staticmethod
     def build(centers: mi.Point3f, radii: mi.Float, cell_size: float | None = None) -> "BallGrid":
