@@ -7,9 +7,9 @@ import pytest
 from pmic_integrator.hashgrid import BallGrid, PointGrid
 
 
-def _neighbors_by_grid(points, queries, radius, cell_size=None):
+def _neighbors_by_grid(points, queries, radius, cell_size=None, octant=False):
     """Sorted neighbour index lists (and squared distances) found through a PointGrid."""
-    grid = PointGrid.build(mi.Point3f(points.T), cell_size or radius)
+    grid = PointGrid.build(mi.Point3f(points.T), cell_size or (2 * radius if octant else radius))
     lanes = len(queries)
     # Record up to 64 neighbours per query as a bit-exact checksum: count, sum of
     # indices and sum of squared indices identify the set for these small inputs.
@@ -20,7 +20,7 @@ def _neighbors_by_grid(points, queries, radius, cell_size=None):
                 s2 + dr.select(valid, i * i, 0))
 
     init = (dr.zeros(mi.UInt32, lanes), dr.zeros(mi.UInt32, lanes), dr.zeros(mi.UInt32, lanes))
-    count, s1, s2 = grid.for_each_neighbor(mi.Point3f(queries.T), radius, init, visit)
+    count, s1, s2 = grid.for_each_neighbor(mi.Point3f(queries.T), radius, init, visit, octant=octant)
     return np.array(count), np.array(s1), np.array(s2)
 
 
@@ -34,8 +34,8 @@ def _neighbors_brute(points, queries, radius):
     return (inside.sum(1), (inside * idx).sum(1) % 2**32, (inside * idx * idx).sum(1) % 2**32)
 
 
-def _check_exact(points, queries, radius, cell_size=None):
-    got = _neighbors_by_grid(points, queries, radius, cell_size)
+def _check_exact(points, queries, radius, cell_size=None, octant=False):
+    got = _neighbors_by_grid(points, queries, radius, cell_size, octant)
     want = _neighbors_brute(points, queries, radius)
     for g, w in zip(got, want):
         np.testing.assert_array_equal(g, w.astype(np.uint32))
@@ -48,6 +48,15 @@ def test_random_points_match_brute_force():
     queries = rng.random((700, 3), dtype=np.float32)
     counts = _check_exact(points, queries, 0.08)
     assert counts.mean() > 3  # the test exercises real neighbourhoods
+
+
+@pytest.mark.parametrize("seed", [11, 12])
+def test_octant_queries_match_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    points = rng.random((3000, 3), dtype=np.float32)
+    queries = np.concatenate([rng.random((700, 3), dtype=np.float32), points[:100]], 0)
+    counts = _check_exact(points, queries, 0.06, octant=True)
+    assert counts.mean() > 1
 
 
 def test_points_on_cell_boundaries_and_exact_radius():

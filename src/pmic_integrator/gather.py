@@ -63,9 +63,10 @@ def stratified_directions(strata_theta: int, strata_phi: int, sample_index: mi.U
 class GatherSource:
     """What gather rays read at a diffuse hit: the precomputed-irradiance photons.
 
-    Lookups search a fine grid first (cell = radius / ``FINE_GRID_DIVISOR``): the nearest
-    photon is almost always that close, and the fine grid scans ~4× fewer candidates.
-    Lanes that find nothing there search the full radius in the coarse grid.
+    Lookups first search a quarter of the radius in a fine grid (cell = radius / 2, so
+    only the 2×2×2 nearest cells): with ~64 photons per lookup disc, a compatible
+    photon is that close for ~97 % of the rays, at a fraction of the cost. Lanes that
+    find nothing there search the full radius in the coarse grid.
     """
 
     photons: PhotonMap  #: global map with ``irradiance`` filled in (stage 2)
@@ -91,7 +92,7 @@ class GatherSource:
         result = dr.zeros(mi.Color3f, dr.width(si.p))
         if self.fine_grid is not None:
             index, found = nearest_photon(self.fine_photons, self.fine_grid, si.p, n,
-                                          self.fine_grid.cell_size, active)
+                                          0.5 * self.fine_grid.cell_size, active, octant=True)
             found &= active
             result = dr.gather(mi.Color3f, self.fine_photons.irradiance, index, found)
         retry = active & ~found

@@ -146,7 +146,8 @@ class PointGrid:
     def for_each_neighbor(self, query: mi.Point3f, radius, state: Any,
                           visit: Callable[[Any, mi.UInt32, mi.Float, mi.Bool], Any],
                           active=True, finished: Callable[[Any], mi.Bool] | None = None,
-                          label: str = "point_grid_query", with_offset: bool = False):
+                          label: str = "point_grid_query", with_offset: bool = False,
+                          octant: bool = False):
         """Call ``visit(state, index, dist2, valid)`` for every point within ``radius``.
 
         ``index`` is the point's original index, ``dist2`` its squared distance to
@@ -155,7 +156,9 @@ class PointGrid:
         ``radius`` (scalar or per lane) must not exceed ``cell_size``. ``finished``, if
         given, stops a lane early (e.g. once a covering record was found). With
         ``with_offset``, ``visit`` also receives ``point - query`` (already at hand, so
-        the visitor need not gather the position again).
+        the visitor need not gather the position again). With ``octant`` the radius
+        must not exceed half a cell, and only the 2×2×2 cells nearest the query are
+        visited (instead of 3×3×3).
         """
         query = mi.Point3f(query)
         n_lanes = dr.width(query.x)
@@ -168,11 +171,19 @@ class PointGrid:
         origin = self.origin
         center = cell_of(query, origin, inv)
         mask = dr.opaque(mi.UInt32, self.table_mask)
+        if octant:
+            # Towards the nearer face on each axis: a ball of radius <= cell/2 around
+            # the query lies in the query's cell and those neighbours.
+            frac = (query - origin) * inv - mi.Vector3f(center)
+            toward = mi.Vector3i(dr.select(frac >= 0.5, 1, -1))
+            offsets = [mi.Vector3i(toward.x * (j & 1), toward.y * ((j >> 1) & 1), toward.z * (j >> 2))
+                       for j in range(8)]
+        else:
+            offsets = [mi.Vector3i((j % 3) - 1, ((j // 3) % 3) - 1, (j // 9) - 1) for j in range(27)]
 
         # One loop per neighbour cell, unrolled in Python: the loop body then holds
         # only the per-candidate work (no per-iteration cell bookkeeping).
-        for j in range(27):
-            offset = mi.Vector3i((j % 3) - 1, ((j // 3) % 3) - 1, (j // 9) - 1)
+        for j, offset in enumerate(offsets):
             visited = center + offset
             bucket = hash_cell(visited, mask)
             visited_key = cell_key(visited)

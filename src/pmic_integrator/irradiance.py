@@ -104,7 +104,7 @@ def precompute_irradiance(photons: PhotonMap, grid: PointGrid, radius: float,
 
 
 def nearest_photon(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
-                   query_n: mi.Vector3f, radius, active=True):
+                   query_n: mi.Vector3f, radius, active=True, octant: bool = False):
     """Index of the nearest photon on the query's surface within ``radius``.
 
     Returns ``(index, found)``; ``found`` is False where no compatible photon is near.
@@ -120,5 +120,5 @@ def nearest_photon(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
 
     init = (dr.full(mi.Float, dr.inf, lanes), dr.zeros(mi.UInt32, lanes))
     best_d2, best = grid.for_each_neighbor(query_p, radius, init, visit, active=active,
-                                           label="nearest_photon", with_offset=True)
+                                           label="nearest_photon", with_offset=True, octant=octant)
     return best, dr.isfinite(best_d2)
