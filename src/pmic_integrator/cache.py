@@ -24,7 +24,7 @@ import mitsuba as mi
 
 from .gather import GatherSource, stratified_directions, trace_gather_rays
 from ._jit import opaque_float, opaque_u32, rng as make_rng
-from .hashgrid import BallGrid
+from .hashgrid import BallGrid, PointGrid
 
 # --- Internal tuning constants -------------------------------------------------------
 #: Pilot gather for a candidate's radius: 4 × 4 strata give a harmonic mean distance
@@ -275,6 +275,66 @@ def harmonic_mean_distance(scene, p: mi.Point3f, n: mi.Vector3f, strata, seed: i
     inv = dr.select(si.is_valid(), dr.rcp(dr.maximum(si.t, 1e-30)), 0.0)
     total = block_sum(inv, rays)
     return rays / dr.maximum(total, 1e-30)
+
+
+def clamp_to_neighbours(p: mi.Point3f, n: mi.Vector3f, radius: mi.Float, step: float,
+                        iterations: int) -> mi.Float:
+    """Neighbour clamping (Křivánek et al.): Rᵢ ≤ Rⱼ + |xᵢ − xⱼ| for candidates facing
+    the same way, so that a large record cannot reach over a small one's narrow space
+    (the shadowed gap between a light and its ceiling, a corner).
+
+    Exact clamping needs every pair within the largest radius; instead ``iterations``
+    passes over neighbours within ``step`` propagate the bound over
+    ``iterations × step``, with cheap fixed-radius queries.
+    """
+    if dr.width(radius) == 0 or iterations <= 0:
+        return radius
+    grid = PointGrid.build(p, step)
+    order = grid.order
+    sorted_p = dr.gather(mi.Point3f, p, order)
+    sorted_n = dr.gather(mi.Vector3f, n, order)
+    sorted_r = dr.gather(mi.Float, radius, order)
+    grid = grid.sorted_in_place()
+    for _ in range(iterations):
+        previous = sorted_r
+
+        def visit(bound, index, dist2, valid):
+            ok = valid & (dr.dot(dr.gather(mi.Vector3f, sorted_n, index, valid), sorted_n) > 0)
+            neighbour = dr.gather(mi.Float, previous, index, ok) + dr.sqrt(dist2)
+            return dr.select(ok, dr.minimum(bound, neighbour), bound)
+
+        sorted_r = grid.for_each_neighbor(sorted_p, step, mi.Float(previous), visit,
+                                          label="neighbour_clamping")
+        dr.eval(sorted_r)
+    out = dr.zeros(mi.Float, dr.width(radius))
+    dr.scatter(out, sorted_r, order)
+    return out
+
+
+def clamp_records_to_points(index: "RecordIndex", p: mi.Point3f, n: mi.Vector3f,
+                            radius: mi.Float):
+    """New record radii with Rᵢ ≤ R(x) + |x − xᵢ| for every point x (radius R(x)) that
+    record i covers; None if no record changes."""
+    records = index.records
+    if records.count == 0 or dr.width(radius) == 0:
+        return None
+    bound_r = dr.zeros(mi.Float, records.count) + records.radius
+    dr.eval(bound_r)
+
+    def visit(state, i, valid):
+        rp = dr.gather(mi.Point3f, records.position, i, valid)
+        rn = dr.gather(mi.Vector3f, records.normal, i, valid)
+        rr = dr.gather(mi.Float, records.radius, i, valid)
+        ok = valid & covers(p, n, rp, rn, rr, index.max_error)
+        bound = radius + dr.norm(p - rp)
+        dr.scatter_reduce(dr.ReduceOp.Min, bound_r, bound, i, ok & (bound < rr))
+        return state
+
+    index.grid.for_each_ball(p, dr.zeros(mi.UInt32, dr.width(radius)), visit,
+                             label="view_neighbour_clamping")
+    dr.eval(bound_r)
+    changed = dr.any(bound_r < records.radius)
+    return bound_r if bool(changed[0] if dr.width(changed) else changed) else None
 
 
 def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,

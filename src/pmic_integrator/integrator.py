@@ -31,6 +31,13 @@ MIN_REACH_LOOKUPS = 1.0
 #: Largest record radius as a fraction of the scene's bounding-box diagonal: a
 #: view-independent cache has no pixel footprint to bound it, the scene size does.
 R_MAX_DIAGONAL = 0.08
+#: Neighbour clamping looks this many photon lookup radii around each candidate, and
+#: repeats until the bound has spread over the largest radius (at most this many passes).
+CLAMP_STEP_LOOKUPS = 2.0
+CLAMP_ITERATIONS = 6
+#: Every this-many-th camera point probes the cache for neighbour clamping.
+VIEW_PROBE_STRIDE = 8
+VIEW_CLAMP_PASSES = 4
 #: Candidates walked first, evenly spread, before the ones they leave uncovered.
 PLACEMENT_SUBSET = 32768
 #: Ray origins are pushed off the surface by this fraction of the scene diagonal.
@@ -433,6 +440,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
         pilot = cache_mod.harmonic_mean_distance(scene, cand_p, cand_n, cache_mod.PILOT_STRATA,
                                                  self.seed + 17, offset)
         pilot = dr.clip(pilot, opaque_float(r_min), opaque_float(r_max))
+        step = max(CLAMP_STEP_LOOKUPS * self._prepared.global_radius, r_max / CLAMP_ITERATIONS)
+        pilot = cache_mod.clamp_to_neighbours(cand_p, cand_n, pilot, step,
+                                              int(math.ceil(r_max / step)))
         dr.eval(pilot)
         selected, rounds = cache_mod.place_records(cand_p, cand_n, pilot, self.max_error, existing)
         return (dr.gather(mi.Point3f, cand_p, selected), dr.gather(mi.Vector3f, cand_n, selected),
@@ -509,6 +519,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
             self.stats["placement_rounds"] = rounds
         else:
             before = prepared.index.records.count if prepared.index else 0
+            if prepared.index is not None:
+                self._clamp_to_view(scene, cam_p, cam_n, offset)
             uncovered = ~prepared.index.covered(cam_p, cam_n) if prepared.index else mi.Bool(True)
             keep = dr.compress(uncovered)
             if dr.width(keep):
@@ -520,6 +532,40 @@ class PMICIntegrator(mi.SamplingIntegrator):
             self.stats["camera_points_uncovered"] = int(dr.width(keep))
         dr.sync_thread()
         self.stats["time_cache_view"] = time.perf_counter() - t0
+
+    def _clamp_to_view(self, scene, cam_p, cam_n, offset):
+        """Neighbour clamping against what the camera sees: a record may not reach a
+        visible point x further than R(x) + |x − xᵢ|, where R(x) is x's own pilot
+        radius. Photons are sparse exactly where this matters (the shadowed gap
+        between a light and its ceiling), so the photon-seeded records cannot know.
+        Shrunk records may uncover photons; those get records of their own, so every
+        photon stays covered."""
+        prepared = self._prepared
+        index = prepared.index
+        probes = dr.arange(mi.UInt32, -(-dr.width(cam_p.x) // VIEW_PROBE_STRIDE)) * \
+            opaque_u32(VIEW_PROBE_STRIDE)
+        probe_p = dr.gather(mi.Point3f, cam_p, probes)
+        probe_n = dr.gather(mi.Vector3f, cam_n, probes)
+        r_min, r_max = self._radius_bounds()
+        probe_r = dr.clip(cache_mod.harmonic_mean_distance(scene, probe_p, probe_n, cache_mod.PILOT_STRATA,
+                                                           self.seed + 23, offset),
+                          opaque_float(r_min), opaque_float(r_max))
+        photons = prepared.global_map
+        # Records made for photons that shrinking uncovered must obey the bound too;
+        # a record always covers its own photon, so this settles in a few passes.
+        for _ in range(VIEW_CLAMP_PASSES):
+            shrunk = cache_mod.clamp_records_to_points(index, probe_p, probe_n, probe_r)
+            if shrunk is None:
+                break
+            records = index.records
+            records.radius = shrunk
+            index = RecordIndex.build(records, self.max_error)
+            lost = dr.compress(~index.covered(photons.position, photons.normal))
+            if dr.width(lost):
+                index, _ = self._build_records(scene, dr.gather(mi.Point3f, photons.position, lost),
+                                               dr.gather(mi.Vector3f, photons.normal, lost), index,
+                                               offset)
+        prepared.index = index
 
     def _publish_stats(self):
         p = self._prepared
