@@ -43,12 +43,12 @@ PATH_SPP = {"full": [4, 16, 64, 256, 1024], "quick": [4, 16]}
 #: pmic settings, cheapest first; each is one point of its curve.
 PMIC_LADDER = {
     "full": [
-        {"global_photons": 100_000, "max_error": 0.6, "gather_rays": 256, "spp": 8},
+        {"global_photons": 100_000, "max_error": 0.6, "gather_rays": 256, "spp": 8, "direct_samples": 1},
         {"global_photons": 200_000, "max_error": 0.5, "gather_rays": 256, "spp": 16},
-        {"global_photons": 200_000, "max_error": 0.5, "gather_rays": 512, "spp": 32},
-        {"global_photons": 200_000, "max_error": 0.4, "gather_rays": 1024, "spp": 64},
+        {"global_photons": 200_000, "max_error": 0.5, "gather_rays": 256, "spp": 32},
+        {"global_photons": 200_000, "max_error": 0.4, "gather_rays": 512, "spp": 64},
         {"global_photons": 400_000, "max_error": 0.3, "gather_rays": 1024, "spp": 128},
-        {"global_photons": 800_000, "max_error": 0.25, "gather_rays": 2048, "spp": 256},
+        {"global_photons": 400_000, "max_error": 0.3, "gather_rays": 1024, "spp": 256},
     ],
     "quick": [
         {"global_photons": 20_000, "max_error": 0.8, "gather_rays": 64, "spp": 4},

@@ -3,7 +3,7 @@ equal time, print both errors against the path-traced reference, and write the i
 
 Examples::
 
-    pmic-compare                                   # Cornell box, 128x128, 16 spp
+    pmic-compare                                   # Cornell box, 512x512, 32 spp
     pmic-compare indirect_room --spp 64 --set max_error=0.3 --set gather_rays=1024
     pmic-compare cornell_caustics --output out/ --variant cuda_ad_rgb
 """
@@ -47,10 +47,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "time; print both errors against the path-traced reference.")
     parser.add_argument("scene", nargs="?", default="cornell_box", choices=SCENES,
                         help="bundled scene (default: cornell_box)")
-    parser.add_argument("--resolution", type=int, default=128,
-                        help="image width and height in pixels; a reference must exist at this size "
-                             "(default: 128)")
-    parser.add_argument("--spp", type=int, default=16, help="pmic samples per pixel (default: 16)")
+    parser.add_argument("--resolution", type=int, default=512,
+                        help="image width and height in pixels; a reference must exist at this size: "
+                             "512 for cornell_box and indirect_room, 128 for every scene (default: 512)")
+    parser.add_argument("--spp", type=int, default=32, help="pmic samples per pixel (default: 32)")
     parser.add_argument("--set", action="append", metavar="NAME=VALUE",
                         help="a pmic parameter, e.g. --set global_photons=400000 (repeatable)")
     parser.add_argument("--output", type=Path, default=Path("pmic-output"),

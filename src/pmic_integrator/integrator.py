@@ -182,9 +182,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
            4 M). A warning is given when fewer than half the photons were stored.
        * - ``direct_samples``
          - int
-         - 1
-         - Emitter samples (shadow rays) per camera vertex: cheaper than more camera
-           samples when direct-light noise dominates.
+         - 4
+         - Emitter samples (shadow rays) per camera vertex: shadow rays cost far less
+           than camera samples (which also interpolate the cache), and direct light is
+           most of the noise left.
        * - ``seed``
          - int
          - 0
@@ -222,7 +223,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         self.gather_rays = int(props.get("gather_rays", 256))
         self.final_gather = bool(props.get("final_gather", False))
         self.max_photon_paths = int(props.get("max_photon_paths", 0))
-        self.direct_samples = int(props.get("direct_samples", 1))
+        self.direct_samples = int(props.get("direct_samples", 4))
         self.seed = int(props.get("seed", 0))
 
         _check("method", self.method, self.method in METHODS, f"one of {', '.join(METHODS)}")
