@@ -11,7 +11,9 @@ Writes, into ``--out`` (default ``benchmarks/results/``):
   error_vs_time_<res>_<scene>.png   log-log plot, both integrators on the same axes
 
 The speed-up at a target relMSE is t_path(e) / t_pmic(e), each time interpolated
-log-linearly along that integrator's lower envelope (the fastest run reaching e).
+log-linearly along that integrator's lower envelope (the fastest run reaching e). Where
+path's longest run did not reach e, its time is extrapolated with relMSE ∝ 1/time
+(unbiased Monte Carlo) from that run, and marked "extrapolated"; pmic's never is.
 A reference is itself noisy: its own relMSE against the truth (``noise``, estimated by
 make_references.py from the spread between its passes) adds to every measured relMSE.
 The tables show the measured relMSE; the speed-ups are given both on it and on the
@@ -66,12 +68,16 @@ def envelope(points):
     return best
 
 
-def time_to_reach(points, target):
+def time_to_reach(points, target, extrapolate=False):
     """Time at which the envelope first reaches ``target`` (log-log interpolation);
-    None if no run reached it."""
+    None if no run reached it. With ``extrapolate`` (for path tracing only: unbiased
+    Monte Carlo, whose relMSE falls as 1/time), a target below the last run is reached
+    at t_last · e_last / target."""
     env = envelope(points)
-    if not env or env[-1][1] > target:
+    if not env:
         return None
+    if env[-1][1] > target:
+        return env[-1][0] * env[-1][1] / target if extrapolate else None
     if env[0][1] <= target:
         return env[0][0]  # the cheapest run already reaches it (upper bound)
     for (t0, e0), (t1, e1) in zip(env, env[1:]):
@@ -112,9 +118,10 @@ def speedups(rows, noise=0.0):
     path = [(r.seconds, max(r.rel_mse - noise, 1e-12)) for r in rows if r.label == "path"]
     pmic = [(r.seconds, max(r.rel_mse - noise, 1e-12)) for r in rows if r.label == "pmic"]
     out = {}
+    path_best = min(e for _, e in path) if path else math.inf
     for target in TARGETS:
-        tp, tq = time_to_reach(path, target), time_to_reach(pmic, target)
-        out[f"{target:.0e}"] = {"path_s": tp, "pmic_s": tq,
+        tp, tq = time_to_reach(path, target, extrapolate=True), time_to_reach(pmic, target)
+        out[f"{target:.0e}"] = {"path_s": tp, "pmic_s": tq, "path_extrapolated": path_best > target,
                                 "speedup": (tp / tq) if tp and tq else None}
     return out
 
@@ -151,58 +158,39 @@ def machine():
             "threads": dr.thread_count(), "date": time.strftime("%Y-%m-%d")}
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", nargs="+", default=["cornell_box", "indirect_room"])
-    parser.add_argument("--resolution", type=int, default=512)
-    parser.add_argument("--quick", action="store_true", help="tiny ladders at 128² (smoke test)")
-    parser.add_argument("--out", type=Path, default=RESULTS)
-    parser.add_argument("--variant", default="llvm_ad_rgb")
-    args = parser.parse_args(argv)
-    mode = "quick" if args.quick else "full"
-    resolution = 128 if args.quick else args.resolution
-    mi.set_variant(args.variant)
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = f"error_vs_time_{resolution}" + ("_quick" if args.quick else "")
-    results = {"machine": machine(), "resolution": resolution, "mode": mode,
-               "command": "python benchmarks/error_vs_time.py " + " ".join(argv or sys.argv[1:]),
-               "scenes": {}}
+def write_outputs(results, out: Path, stem: str):
+    """Speed-ups, Markdown, CSV and plots from ``results`` (as saved in the JSON)."""
+    from types import SimpleNamespace
+
+    resolution = results["resolution"]
     md = [f"# Error vs time at {resolution}²", "",
           f"`{results['command']}` — {results['machine']}", ""]
-    for name in args.scenes:
-        print(f"{name}:", flush=True)
-        from pmic_integrator import scenes as bundled
-
-        meta = bundled.read_exr_metadata(bundled.reference_path(name, resolution))
-        noise = float(meta.get("pmic_noise_rel_mse", 0.0))
-        rows = run_scene(name, resolution, mode, lambda s: print(s, flush=True))
-        ups = speedups(rows)
-        ups_corrected = speedups(rows, noise)
-        results["scenes"][name] = {"runs": [r.row() for r in rows], "speedup": ups,
-                                   "reference_noise_rel_mse": noise,
-                                   "speedup_noise_corrected": ups_corrected,
-                                   "reference": meta.get("pmic_command", "")}
-        plot(name, rows, args.out / f"{stem}_{name}.png", resolution)
+    fmt = lambda x, extra=False: (f"{x:.2f}" + (" (extrapolated)" if extra else "")) if x else "not reached"
+    sp = lambda v: (str(round(v["speedup"], 1)) + "×") if v["speedup"] else "—"
+    for name, data in results["scenes"].items():
+        rows = [SimpleNamespace(**r) for r in data["runs"]]
+        noise = data["reference_noise_rel_mse"]
+        data["speedup"] = ups = speedups(rows)
+        data["speedup_noise_corrected"] = corrected = speedups(rows, noise)
+        plot(name, rows, out / f"{stem}_{name}.png", resolution)
         md += [f"## {name}", "", "| integrator | settings | spp | time [s] | compile [s] | relMSE | RMSE | "
                "CIEDE2000 | luminance |", "|---|---|---|---|---|---|---|---|---|"]
         for r in rows:
             settings = {k: v for k, v in r.integrator.items() if k != "type"}
             md.append(f"| {r.label} | {settings or ''} | {r.spp} | {r.seconds:.2f} | {r.compile_s:.2f} | "
                       f"{r.rel_mse:.2e} | {r.rmse:.4f} | {r.ciede2000:.3f} | {r.luminance_ratio:.4f} |")
-        md += ["", f"Reference: {meta.get('pmic_spp', '?')} spp, its own noise relMSE {noise:.1e}.", "",
-               "| relMSE target | path [s] | pmic [s] | pmic speed-up | corrected: path [s] | pmic [s] | speed-up |",
+        md += ["", f"Reference: `{data['reference']}`; its own noise relMSE {noise:.1e}.", "",
+               "| relMSE target | path [s] | pmic [s] | pmic speed-up | noise-corrected: path [s] | pmic [s] | speed-up |",
                "|---|---|---|---|---|---|---|"]
-        fmt = lambda x: f"{x:.2f}" if x else "not reached"
-        sp = lambda v: (str(round(v['speedup'], 1)) + '×') if v['speedup'] else '—'
         for target, v in ups.items():
-            c = ups_corrected[target]
-            md.append(f"| {target} | {fmt(v['path_s'])} | {fmt(v['pmic_s'])} | {sp(v)} | "
-                      f"{fmt(c['path_s'])} | {fmt(c['pmic_s'])} | {sp(c)} |")
+            c = corrected[target]
+            md.append(f"| {target} | {fmt(v['path_s'], v['path_extrapolated'])} | {fmt(v['pmic_s'])} | "
+                      f"{sp(v)} | {fmt(c['path_s'], c['path_extrapolated'])} | {fmt(c['pmic_s'])} | {sp(c)} |")
         md += ["", f"![{name}]({stem}_{name}.png)", ""]
-        print(json.dumps(ups), flush=True)
-    (args.out / f"{stem}.json").write_text(json.dumps(results, indent=2, default=str))
-    (args.out / f"{stem}.md").write_text("\n".join(md) + "\n")
-    with open(args.out / f"{stem}.csv", "w", newline="") as f:
+        print(name, json.dumps(ups), flush=True)
+    (out / f"{stem}.json").write_text(json.dumps(results, indent=2, default=str))
+    (out / f"{stem}.md").write_text("\n".join(md) + "\n")
+    with open(out / f"{stem}.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["scene", "integrator", "settings", "spp", "seconds", "compile_s", "rel_mse", "rmse",
                     "ciede2000", "luminance_ratio"])
@@ -212,7 +200,41 @@ def main(argv=None):
                                                           if k != "type"}),
                             r["spp"], r["seconds"], r["compile_s"], r["rel_mse"], r["rmse"],
                             r["ciede2000"], r["luminance_ratio"]])
-    print(f"wrote {args.out / stem}.json/.csv/.md and plots")
+    print(f"wrote {out / stem}.json/.csv/.md and plots")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scenes", nargs="+", default=["cornell_box", "indirect_room"])
+    parser.add_argument("--resolution", type=int, default=512)
+    parser.add_argument("--quick", action="store_true", help="tiny ladders at 128² (smoke test)")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--variant", default="llvm_ad_rgb")
+    parser.add_argument("--replot", type=Path, default=None,
+                        help="recompute speed-ups, tables and plots from a saved JSON (no rendering)")
+    args = parser.parse_args(argv)
+    if args.replot:
+        results = json.loads(args.replot.read_text())
+        write_outputs(results, args.replot.parent, args.replot.stem)
+        return
+    mode = "quick" if args.quick else "full"
+    resolution = 128 if args.quick else args.resolution
+    mi.set_variant(args.variant)
+    from pmic_integrator import scenes as bundled
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    stem = f"error_vs_time_{resolution}" + ("_quick" if args.quick else "")
+    results = {"machine": machine(), "resolution": resolution, "mode": mode,
+               "command": "python benchmarks/error_vs_time.py " + " ".join(argv or sys.argv[1:]),
+               "scenes": {}}
+    for name in args.scenes:
+        print(f"{name}:", flush=True)
+        meta = bundled.read_exr_metadata(bundled.reference_path(name, resolution))
+        rows = run_scene(name, resolution, mode, lambda s: print(s, flush=True))
+        results["scenes"][name] = {"runs": [r.row() for r in rows],
+                                   "reference_noise_rel_mse": float(meta.get("pmic_noise_rel_mse", 0.0)),
+                                   "reference": meta.get("pmic_command", "")}
+    write_outputs(results, args.out, stem)
 
 
 if __name__ == "__main__":
