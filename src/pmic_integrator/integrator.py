@@ -39,7 +39,7 @@ CLAMP_ITERATIONS = 6
 VIEW_PROBE_STRIDE = 8
 VIEW_CLAMP_PASSES = 4
 #: Candidates walked first, evenly spread, before the ones they leave uncovered.
-PLACEMENT_SUBSET = 32768
+PLACEMENT_SUBSET = 16384
 #: Ray origins are pushed off the surface by this fraction of the scene diagonal.
 RAY_OFFSET_DIAGONAL = 1e-5
 #: Photons per caustic estimate relative to ``lookup_size``: caustics are sharper.
@@ -355,9 +355,6 @@ class PMICIntegrator(mi.SamplingIntegrator):
         if self.caustic_photons == 0 and need_caustic:
             skipped.append("caustic map: caustic_photons = 0")
             need_caustic = False
-        for reason in skipped:
-            log.info("pmic: skipped %s", reason)
-
         # Stage 1: photon maps.
         t0 = time.perf_counter()
         global_map = PhotonMap.empty()
@@ -386,7 +383,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                        max(1, int(self.lookup_size * CAUSTIC_LOOKUP_FRACTION)))
         global_map, global_grid = _sorted_map(global_map, global_radius)
         caustic_map, caustic_grid = _sorted_map(caustic_map, caustic_radius)
-        if global_map.count:
+        if global_map.count and self.method == "photon_map" and not self.final_gather:
+            skipped.append("precomputed irradiance: photon_map without final gathering never reads it")
+        elif global_map.count:
             depth_limit = None if self.max_depth == -1 else self.max_depth - 2
             global_map.irradiance = precompute_irradiance(global_map, global_grid, global_radius, depth_limit)
         dr.sync_thread()
@@ -416,6 +415,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         self._prepared.index = index
         stats["time_cache"] = time.perf_counter() - t0
         stats["skipped"] = list(skipped)
+        for reason in skipped:
+            log.info("pmic: skipped %s", reason)
 
     def _max_paths(self, photons: int) -> int:
         if self.max_photon_paths:
@@ -463,7 +464,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         rounds = 0
         remaining_p, remaining_n = cand_p, cand_n
         new_p, new_n, new_r = [], [], []
-        if count > 2 * PLACEMENT_SUBSET:
+        if count > PLACEMENT_SUBSET:
             stride = -(-count // PLACEMENT_SUBSET)
             subset = dr.arange(mi.UInt32, -(-count // stride)) * opaque_u32(stride)
             (p, n, r), k = self._place(scene, dr.gather(mi.Point3f, cand_p, subset),
