@@ -15,7 +15,7 @@ from . import cache as cache_mod
 from ._jit import opaque_float, opaque_u32, rng as make_rng
 from .cache import CacheRecords, RecordIndex
 from .gather import GatherSource, diffuse_response, non_diffuse_context, trace_gather_rays
-from .hashgrid import PointGrid
+from .hashgrid import BallGrid, PointGrid
 from .irradiance import estimate_irradiance, lookup_radius, precompute_irradiance
 from .photons import CAUSTIC, GLOBAL, PhotonMap, trace_photons
 
@@ -36,7 +36,7 @@ R_MAX_DIAGONAL = 0.08
 CLAMP_STEP_LOOKUPS = 2.0
 CLAMP_ITERATIONS = 6
 #: Every this-many-th camera point probes the cache for neighbour clamping.
-VIEW_PROBE_STRIDE = 8
+VIEW_PROBE_STRIDE = 16
 VIEW_CLAMP_PASSES = 4
 #: Candidates walked first, evenly spread, before the ones they leave uncovered.
 PLACEMENT_SUBSET = 16384
@@ -560,9 +560,14 @@ class PMICIntegrator(mi.SamplingIntegrator):
             if shrunk is None:
                 break
             records = index.records
+            # Only photons within the old reach of a shrunk record can have lost cover.
+            was = dr.compress(shrunk < records.radius)
+            old_reach = BallGrid.build(dr.gather(mi.Point3f, records.position, was),
+                                       dr.gather(mi.Float, records.radius, was) * self.max_error)
+            near = _inside_any(old_reach, photons.position)
             records.radius = shrunk
             index = RecordIndex.build(records, self.max_error)
-            lost = dr.compress(~index.covered(photons.position, photons.normal))
+            lost = dr.compress(near & ~index.covered(photons.position, photons.normal, near))
             if dr.width(lost):
                 index, _ = self._build_records(scene, dr.gather(mi.Point3f, photons.position, lost),
                                                dr.gather(mi.Vector3f, photons.normal, lost), index,
@@ -748,6 +753,14 @@ def _first_diffuse_hit(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32):
         bounce += 1
         active &= ~hit & (bs.pdf > 0) & (bounce < 8)
     return p, n, found
+
+
+def _inside_any(grid: BallGrid, points: mi.Point3f) -> mi.Bool:
+    """Mask of points inside the bounding cells of some ball of ``grid``: a cheap,
+    conservative pre-filter (a point in no ball's cells is in no ball)."""
+    return grid.for_each_ball(points, dr.zeros(mi.Bool, dr.width(points.x)),
+                              lambda hit, index, valid: hit | valid, finished=lambda hit: hit,
+                              label="inside_any_ball")
 
 
 def _join_all(parts, dtype):
