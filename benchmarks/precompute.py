@@ -49,13 +49,13 @@ def main(argv=None):
     info = SceneInfo.of(scene)
     rows = []
     for count in args.photons:
-        trace_photons(scene, GLOBAL, count, -1, 0, 1 << 40)  # warm-up (compiles kernels)
+        timed(lambda: trace_photons(scene, GLOBAL, count, -1, 0, 1 << 40))  # warm-up (compiles)
         traces, builds, pres = [], [], []
         for rep in range(args.repeats):
             photons, t_trace = timed(lambda: trace_photons(scene, GLOBAL, count, -1, rep + 1, 1 << 40))
             radius = lookup_radius(info.surface_area, photons.count, 64)
             (photons, grid), t_build = timed(lambda: _sorted_map(photons, radius))
-            precompute_irradiance(photons, grid, radius)  # warm-up of this size
+            timed(lambda: precompute_irradiance(photons, grid, radius))  # warm-up, finished
             _, t_pre = timed(lambda: precompute_irradiance(photons, grid, radius))
             traces.append(t_trace), builds.append(t_build), pres.append(t_pre)
         row = {"photons": count, "paths_emitted": photons.paths_emitted,

@@ -69,12 +69,16 @@ class PhotonMap:
     def select(self, index: mi.UInt32) -> "PhotonMap":
         """The photons at ``index`` (same ``paths_emitted``)."""
         irr = None if self.irradiance is None else dr.gather(mi.Color3f, self.irradiance, index)
-        return PhotonMap(dr.gather(mi.Point3f, self.position, index),
-                         dr.gather(mi.Vector3f, self.normal, index),
-                         dr.gather(mi.Color3f, self.power, index),
-                         dr.gather(mi.UInt32, self.depth, index),
-                         dr.gather(mi.Bool, self.specular_path, index),
-                         self.paths_emitted, irr)
+        out = PhotonMap(dr.gather(mi.Point3f, self.position, index),
+                        dr.gather(mi.Vector3f, self.normal, index),
+                        dr.gather(mi.Color3f, self.power, index),
+                        dr.gather(mi.UInt32, self.depth, index),
+                        dr.gather(mi.Bool, self.specular_path, index),
+                        self.paths_emitted, irr)
+        # Evaluated now: left lazy, every kernel reading the map would redo the gathers
+        # (random memory access) instead of reading the reordered arrays.
+        dr.eval(out.position, out.normal, out.power, out.depth, out.specular_path, out.irradiance)
+        return out
 
     def nbytes(self) -> int:
         """Bytes held per the arrays above (positions, normals, powers, depths, E)."""
