@@ -251,3 +251,14 @@ def test_photon_map_final_gather_and_direct_samples_agree_with_path():
     assert abs(means["final_gather"] - 1) < 0.02, means
     assert abs(means["pmic"] - 1) < 0.02, means
     assert abs(means["pmic_direct4"] / means["pmic"] - 1) < 0.005, means
+
+
+@pytest.mark.parametrize("photons", [20_000, 60_000])
+def test_every_global_photon_is_covered_after_the_whole_pipeline(photons):
+    # Subset-first walk, neighbour clamping and view clamping all keep Fig. 2's promise.
+    scene = mi.load_dict(small_cornell(resolution=64, global_photons=photons))
+    integrator = scene.integrator()
+    mi.render(scene, spp=1)
+    prepared = integrator._prepared
+    covered = prepared.index.covered(prepared.global_map.position, prepared.global_map.normal)
+    assert bool(dr.all(covered))
