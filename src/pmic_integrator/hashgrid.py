@@ -85,12 +85,6 @@ def _bucket_sort(bucket: mi.UInt32, table_size: int):
     return cell_start, order
 
 
-def _offset_27(j: mi.UInt32) -> mi.Vector3i:
-    """The j-th of the 27 neighbour offsets in {-1, 0, 1}^3."""
-    ji = mi.Int32(j)
-    return mi.Vector3i(ji % 3 - 1, (ji // 3) % 3 - 1, ji // 9 - 1)
-
-
 @dataclass
 class PointGrid:
     """Points sorted into a uniform hash grid.
