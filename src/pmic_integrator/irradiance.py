@@ -74,9 +74,9 @@ def estimate_irradiance(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f
                 ok &= depth <= max_depth
         if skip_specular_paths:
             ok &= ~dr.gather(mi.Bool, photons.specular_path, index, ok)
-        w = dr.square(1.0 - dist2 * inv_r2)
+        # A masked gather reads zero power for rejected photons: no select needed.
         power = dr.gather(mi.Color3f, photons.power, index, ok)
-        return dr.select(ok, total + power * w, total)
+        return dr.fma(power, dr.square(1.0 - dist2 * inv_r2), total)
 
     total = grid.for_each_neighbor(query_p, radius, dr.zeros(mi.Color3f, lanes), visit,
                                    active=active, label="photon_density_estimate", with_offset=True)
