@@ -21,6 +21,31 @@ def opaque_u32(value: int) -> mi.UInt32:
     return dr.opaque(mi.UInt32, int(value) & 0xFFFFFFFF)
 
 
+def concat(parts, dtype):
+    """Join 1-D arrays of ``dtype`` (e.g. several batches of Point3f) end to end.
+
+    (``dr.concat`` joins nested arrays along their first, component axis, so this
+    scatters each part at its offset; offsets are opaque, see above.)
+    """
+    if not parts:
+        return dtype()
+    if len(parts) == 1:
+        return parts[0]
+    out = dr.zeros(dtype, sum(dr.width(p) for p in parts))
+    offset = 0
+    for p in parts:
+        n = dr.width(p)
+        if n:
+            dr.scatter(out, p, dr.arange(mi.UInt32, n) + opaque_u32(offset))
+        offset += n
+    return out
+
+
+def every_nth(count: int, stride: int) -> mi.UInt32:
+    """Indices 0, stride, 2·stride, … below ``count``."""
+    return dr.arange(mi.UInt32, -(-count // stride)) * opaque_u32(stride)
+
+
 def rng(size: int, seed: int, stream: int = 0) -> mi.PCG32:
     """``size`` independent PCG32 streams for (``seed``, ``stream``), without baking
     either number into kernels."""

@@ -23,7 +23,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .gather import GatherSource, stratified_directions, trace_gather_rays
-from ._jit import opaque_float, opaque_u32, rng as make_rng
+from ._jit import concat, opaque_float, opaque_u32, rng as make_rng
 from .hashgrid import BallGrid, PointGrid
 
 # --- Internal tuning constants -------------------------------------------------------
@@ -80,12 +80,12 @@ class CacheRecords:
         if other.count == 0:
             return self
         return CacheRecords(
-            _join(self.position, other.position, mi.Point3f),
-            _join(self.normal, other.normal, mi.Vector3f),
-            _join(self.radius, other.radius, mi.Float),
-            _join(self.irradiance, other.irradiance, mi.Color3f),
-            tuple(_join(a, b, mi.Vector3f) for a, b in zip(self.grad_t, other.grad_t)),
-            tuple(_join(a, b, mi.Vector3f) for a, b in zip(self.grad_r, other.grad_r)))
+            concat([self.position, other.position], mi.Point3f),
+            concat([self.normal, other.normal], mi.Vector3f),
+            concat([self.radius, other.radius], mi.Float),
+            concat([self.irradiance, other.irradiance], mi.Color3f),
+            tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_t, other.grad_t)),
+            tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_r, other.grad_r)))
 
     def nbytes(self) -> int:
         return 4 * (3 + 3 + 1 + 3 + 18) * self.count
@@ -110,14 +110,6 @@ def block_sum(values, block: int):
     _, total = dr.while_loop((dr.zeros(mi.UInt32, count), dr.zeros(dtype, count)),
                              lambda i, total: i < limit, body, label="block_sum")
     return total
-
-
-def _join(a, b, dtype):
-    na, nb = dr.width(a), dr.width(b)
-    out = dr.zeros(dtype, na + nb)
-    dr.scatter(out, a, dr.arange(mi.UInt32, na))
-    dr.scatter(out, b, dr.arange(mi.UInt32, nb) + opaque_u32(na))
-    return out
 
 
 # --------------------------------------------------------------------------------------
@@ -222,9 +214,7 @@ def place_records(cand_p: mi.Point3f, cand_n: mi.Vector3f, cand_r: mi.Float,
         dr.eval(undecided)
     if not selected:
         return mi.UInt32(), rounds
-    out = selected[0]
-    for part in selected[1:]:
-        out = _join(out, part, mi.UInt32)
+    out = concat(selected, mi.UInt32)
     # Ascending candidate index, for reproducibility.
     out = dr.gather(mi.UInt32, out, dr.argsort(out)) if dr.width(out) > 1 else out
     return out, rounds
@@ -237,20 +227,26 @@ def _frame(n: mi.Vector3f) -> mi.Frame3f:
     return mi.Frame3f(dr.normalize(n))
 
 
-def _gather_rays(scene, source, p, n, strata, seed, offset):
-    """Trace M·N stratified rays per point; return per-ray data in [point][j][k] order."""
+def _stratified_rays(p, n, strata, seed, stream, offset):
+    """M·N cosine-weighted stratified rays per point, in [point][j][k] order.
+
+    Returns ``(ray, owner, local direction, j, k, rng)``; ``rng`` continues the
+    rays' random streams (for glossy bounces along them)."""
     m_theta, n_phi = strata
     rays = m_theta * n_phi
     count = dr.width(p.x)
     lane = dr.arange(mi.UInt32, count * rays)
     owner = lane // rays
-    sample = lane % rays
-    rng = make_rng(count * rays, seed, stream=1)
-    local, j, k = stratified_directions(m_theta, n_phi, sample, rng.next_float32(), rng.next_float32())
-    op = dr.gather(mi.Point3f, p, owner)
+    rng = make_rng(count * rays, seed, stream=stream)
+    local, j, k = stratified_directions(m_theta, n_phi, lane % rays, rng.next_float32(), rng.next_float32())
     on = dr.gather(mi.Vector3f, n, owner)
-    direction = _frame(on).to_world(local)
-    ray = mi.Ray3f(op + on * opaque_float(offset), direction)
+    ray = mi.Ray3f(dr.gather(mi.Point3f, p, owner) + on * opaque_float(offset), _frame(on).to_world(local))
+    return ray, owner, local, j, k, rng
+
+
+def _gather_rays(scene, source, p, n, strata, seed, offset):
+    """Trace M·N stratified rays per point; return per-ray data in [point][j][k] order."""
+    ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, 1, offset)
     radiance, distance = trace_gather_rays(scene, source, ray, rng, mi.Bool(True))
     dr.eval(radiance, distance)
     return owner, j, k, local, radiance, distance
@@ -260,17 +256,10 @@ def harmonic_mean_distance(scene, p: mi.Point3f, n: mi.Vector3f, strata, seed: i
                            offset: float) -> mi.Float:
     """R: the harmonic mean of the hit distances of M·N stratified rays (misses count
     as infinitely far). Only distances are needed, so no radiance is looked up."""
-    m_theta, n_phi = strata
-    rays = m_theta * n_phi
-    count = dr.width(p.x)
-    if count == 0:
+    if dr.width(p.x) == 0:
         return mi.Float()
-    lane = dr.arange(mi.UInt32, count * rays)
-    owner = lane // rays
-    rng = make_rng(count * rays, seed, stream=2)
-    local, _, _ = stratified_directions(m_theta, n_phi, lane % rays, rng.next_float32(), rng.next_float32())
-    on = dr.gather(mi.Vector3f, n, owner)
-    ray = mi.Ray3f(dr.gather(mi.Point3f, p, owner) + on * opaque_float(offset), _frame(on).to_world(local))
+    rays = strata[0] * strata[1]
+    ray = _stratified_rays(p, n, strata, seed, 2, offset)[0]
     si = scene.ray_intersect_preliminary(ray, mi.Bool(True))
     inv = dr.select(si.is_valid(), dr.rcp(dr.maximum(si.t, 1e-30)), 0.0)
     total = block_sum(inv, rays)

@@ -12,7 +12,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import cache as cache_mod
-from ._jit import opaque_float, opaque_u32, rng as make_rng
+from ._jit import concat, every_nth, opaque_float, rng as make_rng
 from .cache import CacheRecords, RecordIndex
 from .gather import GatherSource, diffuse_response, non_diffuse_context, trace_gather_rays
 from .hashgrid import BallGrid, PointGrid
@@ -436,12 +436,17 @@ class PMICIntegrator(mi.SamplingIntegrator):
             p.gather_source = GatherSource.build(p.global_map, p.global_grid, p.global_radius)
         return p.gather_source
 
+    def _pilot_radius(self, scene, p, n, seed_offset: int, offset):
+        """R from a cheap pilot gather, clamped to the world-space bounds."""
+        r_min, r_max = self._radius_bounds()
+        pilot = cache_mod.harmonic_mean_distance(scene, p, n, cache_mod.PILOT_STRATA,
+                                                 self.seed + seed_offset, offset)
+        return dr.clip(pilot, opaque_float(r_min), opaque_float(r_max))
+
     def _place(self, scene, cand_p, cand_n, existing: RecordIndex | None, offset):
         """Pilot radii, then placement (Fig. 2); returns the chosen (p, n, R), rounds."""
-        r_min, r_max = self._radius_bounds()
-        pilot = cache_mod.harmonic_mean_distance(scene, cand_p, cand_n, cache_mod.PILOT_STRATA,
-                                                 self.seed + 17, offset)
-        pilot = dr.clip(pilot, opaque_float(r_min), opaque_float(r_max))
+        r_max = self._radius_bounds()[1]
+        pilot = self._pilot_radius(scene, cand_p, cand_n, 17, offset)
         step = max(CLAMP_STEP_LOOKUPS * self._prepared.global_radius, r_max / CLAMP_ITERATIONS)
         pilot = cache_mod.clamp_to_neighbours(cand_p, cand_n, pilot, step,
                                               int(math.ceil(r_max / step)))
@@ -466,7 +471,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         new_p, new_n, new_r = [], [], []
         if count > PLACEMENT_SUBSET:
             stride = -(-count // PLACEMENT_SUBSET)
-            subset = dr.arange(mi.UInt32, -(-count // stride)) * opaque_u32(stride)
+            subset = every_nth(count, stride)
             (p, n, r), k = self._place(scene, dr.gather(mi.Point3f, cand_p, subset),
                                        dr.gather(mi.Vector3f, cand_n, subset), existing, offset)
             rounds += k
@@ -480,9 +485,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
             (p, n, r), k = self._place(scene, remaining_p, remaining_n, prior, offset)
             rounds += k
             new_p.append(p), new_n.append(n), new_r.append(r)
-        p = _join_all(new_p, mi.Point3f)
-        n = _join_all(new_n, mi.Vector3f)
-        r = _join_all(new_r, mi.Float)
+        p = concat(new_p, mi.Point3f)
+        n = concat(new_n, mi.Vector3f)
+        r = concat(new_r, mi.Float)
         records = cache_mod.compute_records(scene, self._source(), p, n, r, self.gather_strata,
                                             self.seed + 31 + (existing.records.count if existing else 0),
                                             offset)
@@ -544,14 +549,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
         photon stays covered."""
         prepared = self._prepared
         index = prepared.index
-        probes = dr.arange(mi.UInt32, -(-dr.width(cam_p.x) // VIEW_PROBE_STRIDE)) * \
-            opaque_u32(VIEW_PROBE_STRIDE)
+        probes = every_nth(dr.width(cam_p.x), VIEW_PROBE_STRIDE)
         probe_p = dr.gather(mi.Point3f, cam_p, probes)
         probe_n = dr.gather(mi.Vector3f, cam_n, probes)
-        r_min, r_max = self._radius_bounds()
-        probe_r = dr.clip(cache_mod.harmonic_mean_distance(scene, probe_p, probe_n, cache_mod.PILOT_STRATA,
-                                                           self.seed + 23, offset),
-                          opaque_float(r_min), opaque_float(r_max))
+        probe_r = self._pilot_radius(scene, probe_p, probe_n, 23, offset)
         photons = prepared.global_map
         # Records made for photons that shrinking uncovered must obey the bound too;
         # a record always covers its own photon, so this settles in a few passes.
@@ -761,13 +762,6 @@ def _inside_any(grid: BallGrid, points: mi.Point3f) -> mi.Bool:
     return grid.for_each_ball(points, dr.zeros(mi.Bool, dr.width(points.x)),
                               lambda hit, index, valid: hit | valid, finished=lambda hit: hit,
                               label="inside_any_ball")
-
-
-def _join_all(parts, dtype):
-    out = parts[0] if parts else dtype()
-    for part in parts[1:]:
-        out = cache_mod._join(out, part, dtype)
-    return out
 
 
 def _sorted_map(photons: PhotonMap, radius: float):

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
-from ._jit import opaque_u32, rng as make_rng
+from ._jit import concat, opaque_u32, rng as make_rng
 
 log = logging.getLogger("pmic")
 
@@ -84,24 +84,6 @@ class PhotonMap:
         """Bytes held per the arrays above (positions, normals, powers, depths, E)."""
         per = 4 * (3 + 3 + 3 + 1 + (3 if self.irradiance is not None else 0)) + 1
         return per * self.count
-
-
-def _concat(parts, dtype):
-    """Join 1-D arrays of ``dtype`` (e.g. several batches of Point3f) end to end."""
-    if not parts:
-        return dtype()
-    if len(parts) == 1:
-        return parts[0]
-    # dr.concat joins nested arrays along their first (component) axis, so scatter.
-    total = sum(dr.width(p) for p in parts)
-    out = dr.zeros(dtype, total)
-    offset = 0
-    for p in parts:
-        n = dr.width(p)
-        if n:
-            dr.scatter(out, p, dr.arange(mi.UInt32, n) + opaque_u32(offset))
-        offset += n
-    return out
 
 
 def _is_specular(flags) -> mi.Bool:
@@ -169,9 +151,9 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         rng.state = dr.gather(mi.UInt64, rng.state, keep)
         rng.inc = dr.gather(mi.UInt64, rng.inc, keep)
         dr.eval(ray, flux, specular_so_far, path_id, rng.state, rng.inc)
-    return (_concat(out["position"], mi.Point3f), _concat(out["normal"], mi.Vector3f),
-            _concat(out["power"], mi.Color3f), _concat(out["depth"], mi.UInt32),
-            _concat(out["specular"], mi.Bool), _concat(out["path"], mi.UInt32))
+    return (concat(out["position"], mi.Point3f), concat(out["normal"], mi.Vector3f),
+            concat(out["power"], mi.Color3f), concat(out["depth"], mi.UInt32),
+            concat(out["specular"], mi.Bool), concat(out["path"], mi.UInt32))
 
 
 def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed: int,
@@ -232,11 +214,11 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
         out = PhotonMap.empty()
         out.paths_emitted = emitted
         return out
-    position = _concat([p[0] for p in parts], mi.Point3f)
-    normal = _concat([p[1] for p in parts], mi.Vector3f)
-    power = _concat([p[2] for p in parts], mi.Color3f) / float(emitted)
-    depth = _concat([p[3] for p in parts], mi.UInt32)
-    specular = _concat([p[4] for p in parts], mi.Bool)
+    position = concat([p[0] for p in parts], mi.Point3f)
+    normal = concat([p[1] for p in parts], mi.Vector3f)
+    power = concat([p[2] for p in parts], mi.Color3f) / float(emitted)
+    depth = concat([p[3] for p in parts], mi.UInt32)
+    specular = concat([p[4] for p in parts], mi.Bool)
     dr.eval(position, normal, power, depth, specular)
     log.info("pmic: %d %s photons from %d paths in %.2f s", stored, kind, emitted,
              time.perf_counter() - start)
