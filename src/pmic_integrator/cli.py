@@ -92,8 +92,8 @@ def main(argv=None) -> int:
         print(f"{r.label:12s} {r.spp:6d} {r.seconds:9.2f} {r.rel_mse:10.2e} {r.rmse:9.4f} "
               f"{r.luminance_ratio:10.4f} {r.ciede2000:10.3f}")
     ratio = path.rel_mse / pmic.rel_mse if pmic.rel_mse > 0 else float("inf")
-    print(f"\nAt equal time, pmic's relMSE is {ratio:.1f}x lower than path's "
-          f"(luminance = mean luminance / reference's).")
+    print("(relMSE = mean((img-ref)^2/(ref^2+0.01)); luminance = mean luminance / the reference's)")
+    print(f"\nAt equal time, pmic's relMSE is {ratio:.1f}x lower than path's.")
     stats = pmic.stats
     stage_names = ("time_photons", "time_precompute", "time_cache", "time_cache_view", "time_render")
     stages = ", ".join(f"{k[5:]} {stats[k]:.2f} s" for k in stage_names if k in stats)
