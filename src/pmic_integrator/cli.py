@@ -93,7 +93,11 @@ def main(argv=None) -> int:
               f"{r.luminance_ratio:10.4f} {r.ciede2000:10.3f}")
     ratio = path.rel_mse / pmic.rel_mse if pmic.rel_mse > 0 else float("inf")
     print("(relMSE = mean((img-ref)^2/(ref^2+0.01)); luminance = mean luminance / the reference's)")
-    print(f"\nAt equal time, pmic's relMSE is {ratio:.1f}x lower than path's.")
+    if ratio >= 1:
+        print(f"\nAt equal time, pmic's relMSE is {ratio:.1f}x lower than path's.")
+    else:
+        print(f"\nAt equal time, path's relMSE is {1 / ratio:.1f}x lower than pmic's (at small "
+              f"sizes pmic's fixed cost, photons and cache, dominates; try --resolution 512).")
     stats = pmic.stats
     stage_names = ("time_photons", "time_precompute", "time_cache", "time_cache_view", "time_render")
     stages = ", ".join(f"{k[5:]} {stats[k]:.2f} s" for k in stage_names if k in stats)
