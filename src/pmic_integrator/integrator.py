@@ -4,6 +4,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -18,10 +19,10 @@ from .gather import GatherSource, diffuse_response, non_diffuse_context, trace_g
 from .hashgrid import BallGrid, PointGrid
 from .irradiance import estimate_irradiance, lookup_radius, precompute_irradiance
 from .photons import CAUSTIC, GLOBAL, PhotonMap, trace_photons
+from .settings import METHODS, Settings, check_against_scene  # noqa: F401 (METHODS re-exported)
 
 log = logging.getLogger("pmic")
 
-METHODS = ("pmic", "photon_map", "irradiance_cache")
 
 # --- Internal tuning constants -------------------------------------------------------
 #: Smallest record *reach* (a·R), in units of the global photon lookup radius:
@@ -54,11 +55,6 @@ def _mis_weight(pdf_a, pdf_b):
     """Power heuristic; a is the strategy that produced the sample."""
     a2 = dr.square(pdf_a)
     return dr.detach(dr.select(pdf_a > 0, a2 / (a2 + dr.square(pdf_b)), 0.0))
-
-
-def _check(name: str, value, ok: bool, allowed: str):
-    if not ok:
-        raise ValueError(f"integrator 'pmic': parameter '{name}' must be {allowed}, got {value!r}")
 
 
 @dataclass
@@ -210,100 +206,64 @@ class PMICIntegrator(mi.SamplingIntegrator):
     """
 
     def __init__(self, props: mi.Properties):
+        # Parsed before Mitsuba's base class reads its own parameters (hide_emitters),
+        # so that every bad parameter gets pmic's message.
+        settings = Settings.parse(props)
         super().__init__(props)
-        self.method = str(props.get("method", "pmic"))
-        self.max_depth = int(props.get("max_depth", -1))
-        self.rr_depth = int(props.get("rr_depth", 5))
-        self.hide_emitters = bool(props.get("hide_emitters", False))
-        self.global_photons = int(props.get("global_photons", 200_000))
-        self.caustic_photons = int(props.get("caustic_photons", 100_000))
-        self.lookup_size = int(props.get("lookup_size", 64))
-        self.lookup_radius = float(props.get("lookup_radius", 0.0))
-        self.max_error = float(props.get("max_error", 0.5))
-        self.gather_rays = int(props.get("gather_rays", 256))
-        self.final_gather = bool(props.get("final_gather", False))
-        self.max_photon_paths = int(props.get("max_photon_paths", 0))
-        self.direct_samples = int(props.get("direct_samples", 4))
-        self.seed = int(props.get("seed", 0))
-
-        _check("method", self.method, self.method in METHODS, f"one of {', '.join(METHODS)}")
-        _check("max_depth", self.max_depth, self.max_depth == -1 or self.max_depth >= 1,
-               "-1 (unbounded) or an integer >= 1")
-        _check("rr_depth", self.rr_depth, self.rr_depth >= 1, "an integer >= 1")
-        _check("global_photons", self.global_photons, 0 <= self.global_photons <= 2**31 - 1,
-               "an integer in [0, 2^31)")
-        _check("caustic_photons", self.caustic_photons, 0 <= self.caustic_photons <= 2**31 - 1,
-               "an integer in [0, 2^31)")
-        _check("lookup_size", self.lookup_size, 1 <= self.lookup_size <= 100_000,
-               "an integer in [1, 100000]")
-        _check("lookup_radius", self.lookup_radius,
-               math.isfinite(self.lookup_radius) and self.lookup_radius >= 0,
-               "a finite number >= 0 (0: derived from lookup_size)")
-        _check("max_error", self.max_error,
-               math.isfinite(self.max_error) and 0 < self.max_error <= 10, "in (0, 10]")
-        _check("gather_rays", self.gather_rays, 4 <= self.gather_rays <= 65536,
-               "an integer in [4, 65536]")
-        _check("max_photon_paths", self.max_photon_paths, self.max_photon_paths >= 0,
-               "an integer >= 0 (0: automatic)")
-        _check("seed", self.seed, self.seed >= 0, "an integer >= 0")
-        _check("direct_samples", self.direct_samples, 1 <= self.direct_samples <= 1024,
-               "an integer in [1, 1024]")
-
-        # M×N strata with N ≈ πM, as Ward & Heckbert recommend.
-        m_theta = max(2, int(round(math.sqrt(self.gather_rays / math.pi))))
-        self.gather_strata = (m_theta, max(2, self.gather_rays // m_theta))
+        #: Every parameter, parsed and checked once (ValueError naming a bad one).
+        self.settings = settings
         self.stats: dict = {}
         self._prepared: PreparedScene | None = None
         self._cache_builds = 0  #: view-independent caches built from photons so far
-        self._inside_render = False
+        # One render at a time per integrator object: the prepared scene and the
+        # per-render state below are shared by the Python render() and the sample()
+        # that Mitsuba's C++ render() calls back into (a second thread would see them
+        # half-updated). Separate integrator objects render concurrently.
+        self._render_lock = threading.RLock()
+        self._thread = threading.local()  #: ``inside``: this thread is in render()
         self._fallback_counter = None
-        self._current_depth_limit = None
 
     # ----------------------------------------------------------------------------------
     # Mitsuba interface
     # ----------------------------------------------------------------------------------
     def to_string(self) -> str:
-        return (f"PMICIntegrator[method={self.method}, max_depth={self.max_depth}, "
-                f"global_photons={self.global_photons}, caustic_photons={self.caustic_photons}, "
-                f"max_error={self.max_error}, gather_rays={self.gather_rays}]")
+        return (f"PMICIntegrator[method={self.settings.method}, max_depth={self.settings.max_depth}, "
+                f"global_photons={self.settings.global_photons}, caustic_photons={self.settings.caustic_photons}, "
+                f"max_error={self.settings.max_error}, gather_rays={self.settings.gather_rays}]")
 
     def aov_names(self):
         return []
 
     def render(self, scene: mi.Scene, sensor=0, seed=0, spp: int = 0, develop: bool = True,
                evaluate: bool = True):
-        if self._inside_render:
+        if getattr(self._thread, "inside", False):
             # Mitsuba's C++ render() calls back into this override: hand it to C++.
             return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
-        if isinstance(sensor, int):
-            sensor = scene.sensors()[sensor]
-        self._prepare_scene(scene)
-        # Scene-level figures (kept while the cache is reused) plus this render's own.
-        self.stats = self._prepared.stats
-        self.stats["cache_builds"] = self._cache_builds
-        self._prepare_view(scene, sensor)
-        self._fallback_counter = dr.zeros(mi.UInt32, 1)
-        start = time.perf_counter()
-        self._inside_render = True
-        try:
-            image = mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
-        finally:
-            self._inside_render = False
-        dr.eval(image)
-        dr.sync_thread()
-        self.stats["time_render"] = time.perf_counter() - start
-        self.stats["shading_points_fallback"] = int(self._fallback_counter[0])
-        self._publish_stats()
-        return image
+        with self._render_lock:
+            if isinstance(sensor, int):
+                sensor = scene.sensors()[sensor]
+            self._prepare_scene(scene)
+            # Scene-level figures (kept while the cache is reused) plus this render's own.
+            self.stats = self._prepared.stats
+            self.stats["cache_builds"] = self._cache_builds
+            self._prepare_view(scene, sensor)
+            self._fallback_counter = dr.zeros(mi.UInt32, 1)
+            start = time.perf_counter()
+            self._thread.inside = True
+            try:
+                image = mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
+            finally:
+                self._thread.inside = False
+            dr.eval(image)
+            dr.sync_thread()
+            self.stats["time_render"] = time.perf_counter() - start
+            self.stats["shading_points_fallback"] = int(self._fallback_counter[0])
+            self._publish_stats()
+            return image
 
     # ----------------------------------------------------------------------------------
     # Stages 1-3: view independent, built once per scene and parameter set
     # ----------------------------------------------------------------------------------
-    def _params_key(self):
-        return (self.method, self.max_depth, self.global_photons, self.caustic_photons,
-                self.lookup_size, self.lookup_radius, self.max_error, self.gather_rays,
-                self.final_gather, self.max_photon_paths, self.seed)
-
     @staticmethod
     def _scene_fingerprint(scene: mi.Scene) -> str:
         """Digest of the scene's parameters, so that an edited scene is rebuilt."""
@@ -322,16 +282,17 @@ class PMICIntegrator(mi.SamplingIntegrator):
         return digest.hexdigest()
 
     def _prepare_scene(self, scene: mi.Scene):
-        key = (id(scene), self._params_key(), self._scene_fingerprint(scene))
+        key = (id(scene), self.settings.key(), self._scene_fingerprint(scene))
         if self._prepared is not None and self._prepared.key == key:
             return
         info = SceneInfo.of(scene)
+        check_against_scene(self.settings, info.surface_area, info.diagonal)
         skipped = []
         stats = {}
         offset = RAY_OFFSET_DIAGONAL * info.diagonal
 
         # What this scene needs (each skip is logged and reported in stats).
-        direct_only = self.max_depth != -1 and self.max_depth <= 2
+        direct_only = self.settings.max_depth != -1 and self.settings.max_depth <= 2
         need_global = True
         need_caustic = True
         if direct_only:
@@ -346,13 +307,13 @@ class PMICIntegrator(mi.SamplingIntegrator):
         if need_caustic and not info.has_specular:
             skipped.append("caustic map: no delta or glossy surface can focus light")
             need_caustic = False
-        if need_caustic and self.max_depth != -1 and self.max_depth < 4:
+        if need_caustic and self.settings.max_depth != -1 and self.settings.max_depth < 4:
             skipped.append("caustic map: max_depth < 4 leaves no room for a caustic path")
             need_caustic = False
-        if self.global_photons == 0 and need_global:
+        if self.settings.global_photons == 0 and need_global:
             skipped.append("global map: global_photons = 0")
             need_global = False
-        if self.caustic_photons == 0 and need_caustic:
+        if self.settings.caustic_photons == 0 and need_caustic:
             skipped.append("caustic map: caustic_photons = 0")
             need_caustic = False
         # Stage 1: photon maps.
@@ -360,15 +321,15 @@ class PMICIntegrator(mi.SamplingIntegrator):
         global_map = PhotonMap.empty()
         caustic_map = PhotonMap.empty()
         if need_global:
-            global_map = trace_photons(scene, GLOBAL, self.global_photons, self.max_depth, self.seed,
-                                       self._max_paths(self.global_photons), _progress)
+            global_map = trace_photons(scene, GLOBAL, self.settings.global_photons, self.settings.max_depth, self.settings.seed,
+                                       self._max_paths(self.settings.global_photons), _progress)
         if need_caustic and need_global and global_map.count == 0:
             # Every caustic photon would also have been stored in the global map.
             skipped.append("caustic map: no global photon reached a diffuse surface")
             need_caustic = False
         if need_caustic:
-            caustic_map = trace_photons(scene, CAUSTIC, self.caustic_photons, self.max_depth, self.seed,
-                                        self._max_paths(self.caustic_photons), _progress)
+            caustic_map = trace_photons(scene, CAUSTIC, self.settings.caustic_photons, self.settings.max_depth, self.settings.seed,
+                                        self._max_paths(self.settings.caustic_photons), _progress)
         dr.sync_thread()
         stats["time_photons"] = time.perf_counter() - t0
         stats["photons_global"] = global_map.count
@@ -377,16 +338,16 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
         # Stage 2: hash grids and irradiance precomputed at the global photons.
         t0 = time.perf_counter()
-        global_radius = self.lookup_radius or lookup_radius(info.surface_area, global_map.count,
-                                                            self.lookup_size)
+        global_radius = self.settings.lookup_radius or lookup_radius(info.surface_area, global_map.count,
+                                                            self.settings.lookup_size)
         caustic_radius = lookup_radius(info.surface_area, caustic_map.count,
-                                       max(1, int(self.lookup_size * CAUSTIC_LOOKUP_FRACTION)))
+                                       max(1, int(self.settings.lookup_size * CAUSTIC_LOOKUP_FRACTION)))
         global_map, global_grid = _sorted_map(global_map, global_radius)
         caustic_map, caustic_grid = _sorted_map(caustic_map, caustic_radius)
-        if global_map.count and self.method == "photon_map" and not self.final_gather:
+        if global_map.count and self.settings.method == "photon_map" and not self.settings.final_gather:
             skipped.append("precomputed irradiance: photon_map without final gathering never reads it")
         elif global_map.count:
-            depth_limit = None if self.max_depth == -1 else self.max_depth - 2
+            depth_limit = None if self.settings.max_depth == -1 else self.settings.max_depth - 2
             global_map.irradiance = precompute_irradiance(global_map, global_grid, global_radius, depth_limit)
         dr.sync_thread()
         stats["time_precompute"] = time.perf_counter() - t0
@@ -401,15 +362,15 @@ class PMICIntegrator(mi.SamplingIntegrator):
         stats["placement_rounds"] = 0
         self._prepared = PreparedScene(key, info, global_map, caustic_map, global_grid, caustic_grid,
                                        global_radius, caustic_radius, None, skipped, stats)
-        if self.method == "pmic" and global_map.count:
+        if self.settings.method == "pmic" and global_map.count:
             candidates_p, candidates_n = global_map.position, global_map.normal
             index, rounds = self._build_records(scene, candidates_p, candidates_n, None, offset)
             stats["records"] = index.records.count
             stats["placement_rounds"] = rounds
             self._cache_builds += 1
-        elif self.method == "pmic":
+        elif self.settings.method == "pmic":
             skipped.append("cache: no global photons")
-        if self.method == "photon_map" and self.final_gather and global_map.count:
+        if self.settings.method == "photon_map" and self.settings.final_gather and global_map.count:
             self._source()  # built here: the camera kernel may not build grids
         dr.sync_thread()
         self._prepared.index = index
@@ -419,14 +380,14 @@ class PMICIntegrator(mi.SamplingIntegrator):
             log.info("pmic: skipped %s", reason)
 
     def _max_paths(self, photons: int) -> int:
-        if self.max_photon_paths:
-            return self.max_photon_paths
+        if self.settings.max_photon_paths:
+            return self.settings.max_photon_paths
         return max(MAX_PATHS_PER_PHOTON * photons, MIN_MAX_PATHS)
 
     def _radius_bounds(self):
         prepared = self._prepared
         r_max = R_MAX_DIAGONAL * prepared.info.diagonal
-        r_min = min(MIN_REACH_LOOKUPS * prepared.global_radius / self.max_error, r_max) \
+        r_min = min(MIN_REACH_LOOKUPS * prepared.global_radius / self.settings.max_error, r_max) \
             if prepared.global_radius > 0 else 1e-3 * r_max
         return r_min, r_max
 
@@ -440,7 +401,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         """R from a cheap pilot gather, clamped to the world-space bounds."""
         r_min, r_max = self._radius_bounds()
         pilot = cache_mod.harmonic_mean_distance(scene, p, n, cache_mod.PILOT_STRATA,
-                                                 self.seed + seed_offset, offset)
+                                                 self.settings.seed + seed_offset, offset)
         return dr.clip(pilot, opaque_float(r_min), opaque_float(r_max))
 
     def _place(self, scene, cand_p, cand_n, existing: RecordIndex | None, offset):
@@ -451,7 +412,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         pilot = cache_mod.clamp_to_neighbours(cand_p, cand_n, pilot, step,
                                               int(math.ceil(r_max / step)))
         dr.eval(pilot)
-        selected, rounds = cache_mod.place_records(cand_p, cand_n, pilot, self.max_error, existing)
+        selected, rounds = cache_mod.place_records(cand_p, cand_n, pilot, self.settings.max_error, existing)
         return (dr.gather(mi.Point3f, cand_p, selected), dr.gather(mi.Vector3f, cand_n, selected),
                 dr.gather(mi.Float, pilot, selected)), rounds
 
@@ -477,22 +438,22 @@ class PMICIntegrator(mi.SamplingIntegrator):
             rounds += k
             new_p.append(p), new_n.append(n), new_r.append(r)
             placed = placed.extend(CacheRecords.geometry_only(p, n, r))
-            uncovered = dr.compress(~RecordIndex.build(placed, self.max_error).covered(cand_p, cand_n))
+            uncovered = dr.compress(~RecordIndex.build(placed, self.settings.max_error).covered(cand_p, cand_n))
             remaining_p = dr.gather(mi.Point3f, cand_p, uncovered)
             remaining_n = dr.gather(mi.Vector3f, cand_n, uncovered)
         if dr.width(remaining_p.x):
-            prior = RecordIndex.build(placed, self.max_error) if placed.count else None
+            prior = RecordIndex.build(placed, self.settings.max_error) if placed.count else None
             (p, n, r), k = self._place(scene, remaining_p, remaining_n, prior, offset)
             rounds += k
             new_p.append(p), new_n.append(n), new_r.append(r)
         p = concat(new_p, mi.Point3f)
         n = concat(new_n, mi.Vector3f)
         r = concat(new_r, mi.Float)
-        records = cache_mod.compute_records(scene, self._source(), p, n, r, self.gather_strata,
-                                            self.seed + 31 + (existing.records.count if existing else 0),
+        records = cache_mod.compute_records(scene, self._source(), p, n, r, self.settings.gather_strata,
+                                            self.settings.seed + 31 + (existing.records.count if existing else 0),
                                             offset)
         all_records = existing.records.extend(records) if existing is not None else records
-        return RecordIndex.build(all_records, self.max_error), rounds
+        return RecordIndex.build(all_records, self.settings.max_error), rounds
 
     # ----------------------------------------------------------------------------------
     # Per-view preparation: records where the camera sees what no photon reached
@@ -505,19 +466,19 @@ class PMICIntegrator(mi.SamplingIntegrator):
         idx = dr.arange(mi.UInt32, w * h)
         pos = mi.Vector2f(mi.Float(idx % w) + 0.5, mi.Float(idx // w) + 0.5) / mi.Vector2f(w, h)
         ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5), pos, mi.Point2f(0.5, 0.5))
-        rng = make_rng(w * h, self.seed, stream=101)
+        rng = make_rng(w * h, self.settings.seed, stream=101)
         p, n, found = _first_diffuse_hit(scene, mi.Ray3f(ray), rng)
         keep = dr.compress(found)
         return dr.gather(mi.Point3f, p, keep), dr.gather(mi.Vector3f, n, keep)
 
     def _prepare_view(self, scene: mi.Scene, sensor: mi.Sensor):
         prepared = self._prepared
-        if self.method == "photon_map" or prepared.global_map.count == 0:
+        if self.settings.method == "photon_map" or prepared.global_map.count == 0:
             return
         t0 = time.perf_counter()
         offset = RAY_OFFSET_DIAGONAL * prepared.info.diagonal
         cam_p, cam_n = self._camera_points(scene, sensor)
-        if self.method == "irradiance_cache":
+        if self.settings.method == "irradiance_cache":
             # Classic cache: records placed from this camera only, rebuilt per view.
             index, rounds = self._build_records(scene, cam_p, cam_n, None, offset)
             prepared.index = index
@@ -564,10 +525,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
             # Only photons within the old reach of a shrunk record can have lost cover.
             was = dr.compress(shrunk < records.radius)
             old_reach = BallGrid.build(dr.gather(mi.Point3f, records.position, was),
-                                       dr.gather(mi.Float, records.radius, was) * self.max_error)
+                                       dr.gather(mi.Float, records.radius, was) * self.settings.max_error)
             near = _inside_any(old_reach, photons.position)
             records.radius = shrunk
-            index = RecordIndex.build(records, self.max_error)
+            index = RecordIndex.build(records, self.settings.max_error)
             lost = dr.compress(near & ~index.covered(photons.position, photons.normal, near))
             if dr.width(lost):
                 index, _ = self._build_records(scene, dr.gather(mi.Point3f, photons.position, lost),
@@ -584,7 +545,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         # Photon maps, their hash grids and the gather lookup copy, all included.
         self.stats["memory_photons_bytes"] = photon_bytes
         self.stats["memory_records_bytes"] = p.index.records.nbytes() if p.index else 0
-        if self.method != "pmic":
+        if self.settings.method != "pmic":
             self.stats.setdefault("records", 0)
 
     # ----------------------------------------------------------------------------------
@@ -597,15 +558,15 @@ class PMICIntegrator(mi.SamplingIntegrator):
         lanes = dr.width(p)
         irradiance = dr.zeros(mi.Color3f, lanes)
         # Photons completing a path of at most max_depth segments (-1: all).
-        depth_limit = None if self.max_depth == -1 else mi.UInt32(self.max_depth) - depth - 1
+        depth_limit = None if self.settings.max_depth == -1 else mi.UInt32(self.settings.max_depth) - depth - 1
         if prepared.caustic_map.count:
             irradiance += estimate_irradiance(prepared.caustic_map, prepared.caustic_grid, p, n,
                                               prepared.caustic_radius, max_depth=depth_limit,
                                               active=active)
         if prepared.global_map.count == 0:
             return irradiance
-        if self.method == "photon_map":
-            if not self.final_gather:
+        if self.settings.method == "photon_map":
+            if not self.settings.final_gather:
                 irradiance += self._photon_estimate(p, n, depth_limit, active)
             return irradiance
         cached, covered = prepared.index.interpolate(p, n, active) if prepared.index is not None \
@@ -626,10 +587,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,
                medium: mi.Medium = None, active: mi.Bool = True):
-        max_depth = 0xFFFFFFFF if self.max_depth == -1 else self.max_depth
+        max_depth = 0xFFFFFFFF if self.settings.max_depth == -1 else self.settings.max_depth
         have_global = self._prepared.global_map.count > 0
         use_indirect = have_global or self._prepared.caustic_map.count > 0
-        final_gather = self.method == "photon_map" and self.final_gather and have_global
+        final_gather = self.settings.method == "photon_map" and self.settings.final_gather and have_global
         ctx_diffuse = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.Diffuse), None)
         ctx_rest = non_diffuse_context()
 
@@ -641,7 +602,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
             em_pdf = scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta)
             mis = dr.select(prev_bsdf_delta, 1.0, _mis_weight(prev_bsdf_pdf, em_pdf))
-            shown = ~(mi.Bool(self.hide_emitters) & (depth == 0))
+            shown = ~(mi.Bool(self.settings.hide_emitters) & (depth == 0))
             result += dr.select(shown, throughput * mis * ds.emitter.eval(si, active), 0.0)
 
             active_next = active & si.is_valid() & (depth + 1 < max_depth)
@@ -675,7 +636,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             depth += 1
 
             survive = dr.minimum(dr.max(throughput), 0.95)
-            roulette = depth >= self.rr_depth
+            roulette = depth >= self.settings.rr_depth
             keep = ~roulette | (sampler.next_1d() < survive)
             throughput = dr.select(roulette, throughput / dr.maximum(survive, 1e-8), throughput)
             active = active_next & keep & (bs.pdf > 0.0) & (dr.max(throughput) > 0.0)
@@ -688,7 +649,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
                  dr.zeros(mi.SurfaceInteraction3f), mi.Float(1.0), mi.Bool(True), sampler)
         state = dr.while_loop(state, lambda active, *rest: active, bounce,
                               label="pmic_camera_path",
-                              max_iterations=-1 if self.max_depth == -1 else self.max_depth)
+                              max_iterations=-1 if self.settings.max_depth == -1 else self.settings.max_depth)
         result = state[4]
         result = dr.select(dr.all(dr.isfinite(result)), result, 0.0)
         return result, mi.Bool(True), []
@@ -705,7 +666,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             mis = dr.select(ds.delta, 1.0, _mis_weight(ds.pdf, pdf_rest))
             return dr.select(ok, em_weight * (f_diffuse + f_rest * mis), 0.0)
 
-        if self.direct_samples == 1:
+        if self.settings.direct_samples == 1:
             return one_sample(sampler), sampler
 
         def body(k, total, sampler):
@@ -713,16 +674,16 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
         _, total, sampler = dr.while_loop(
             (dr.zeros(mi.UInt32, dr.width(si.p)), dr.zeros(mi.Spectrum, dr.width(si.p)), sampler),
-            lambda k, total, sampler: active & (k < self.direct_samples), body,
+            lambda k, total, sampler: active & (k < self.settings.direct_samples), body,
             label="pmic_direct_light")
-        return total / self.direct_samples, sampler
+        return total / self.settings.direct_samples, sampler
 
     def _final_gather_ray(self, scene, sampler, si, n, active):
         """One cosine-distributed gather ray reading precomputed irradiance: E ≈ π L."""
         local = mi.warp.square_to_cosine_hemisphere(sampler.next_2d())
         ray = mi.Ray3f(si.p + n * opaque_float(RAY_OFFSET_DIAGONAL * self._prepared.info.diagonal),
                        mi.Frame3f(n).to_world(local))
-        rng = make_rng(dr.width(si.p), self.seed, stream=7)
+        rng = make_rng(dr.width(si.p), self.settings.seed, stream=7)
         radiance, _ = trace_gather_rays(scene, self._source(), ray, rng, active)
         return radiance * math.pi
 

@@ -1,0 +1,122 @@
+"""Emission of light-path (photon) rays that is correct for rotated environment maps.
+
+Mitsuba 3.9's ``envmap`` emitter places the origin of a ray from ``sample_ray`` on a
+disk that is perpendicular to the sampled direction *in the emitter's local frame*
+(``Frame3f(d)`` with the un-rotated ``d``), while the ray itself travels along the
+rotated (world-space) direction. As soon as ``to_world`` contains a rotation, the disk
+is tilted against the ray: rays cross the scene with a density that is ``1/|cos a|``
+too high (``a`` is the angle between the local and the world direction) inside an
+ellipse of minor axis ``R |cos a|``, and not at all outside it, while the weight still
+assumes an untilted disk of area ``pi R^2``. Light tracing (``ptracer``) and photon
+emission through ``scene.sample_emitter_ray`` are then too bright (and very noisy, the
+``1/|cos a|`` factor has no finite variance). See ``benchmarks/envmap_emission_check.py``.
+
+:func:`sample_emitter_rays` is a drop-in replacement for ``scene.sample_emitter_ray``.
+For every *infinite* emitter (``envmap``, ``constant``, ``directional``) it samples the
+direction with the emitter's own ``sample_direction`` (which handles ``to_world``
+correctly and is what ``path`` uses) and puts the origin on a disk of the scene's
+bounding-sphere radius ``R`` that is perpendicular to the world-space direction, with
+weight ``(L / pdf(direction)) * pi R^2`` (for ``directional``: ``E * pi R^2``). Every
+other emitter (area, point, spot, ...) uses Mitsuba's own ``sample_ray`` unchanged.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+__all__ = ["sample_emitter_rays", "emission_sphere"]
+
+
+def emission_sphere(scene: mi.Scene) -> tuple[mi.ScalarPoint3f, float]:
+    """Centre and radius of the disk that infinite emitters shoot their rays from.
+
+    Same choice as Mitsuba's infinite emitters: the bounding sphere of the scene's
+    bounding box, enlarged by ``RayEpsilon`` (or a tiny sphere at the origin for a scene
+    without geometry). Any sphere that contains the geometry gives an unbiased result.
+    """
+    eps = float(mi.math.RayEpsilon)
+    bbox = scene.bbox()
+    if bbox.valid():
+        bsphere = bbox.bounding_sphere()
+        center = mi.ScalarPoint3f(bsphere.center)
+        radius = max(eps, float(bsphere.radius) * (1.0 + eps))
+    else:
+        center, radius = mi.ScalarPoint3f(0.0), eps
+    return center, radius
+
+
+def _finite(weight) -> mi.Bool:
+    """Lanes whose every spectral channel is finite (not NaN, not +-inf)."""
+    ok = mi.Bool(True)
+    for i in range(len(weight)):
+        ok &= dr.isfinite(weight[i])
+    return ok
+
+
+def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active=True):
+    """Sample emitted rays; same meaning and return value as ``scene.sample_emitter_ray``.
+
+    Returns ``(ray, weight, emitter)``: ``weight`` is the flux carried by the sample
+    (emitted radiance over the spatio-directional density, including ``1/pmf`` of the
+    emitter choice, which is Mitsuba's own ``scene.sample_emitter``). Lanes that are
+    inactive, that pick no valid sample, or whose weight is not finite get weight 0.
+
+    Vectorised (one Dr.Jit wavefront, no Python loop over lanes); scenes with several
+    emitters of mixed kinds are fine. RGB and monochromatic variants use the weight
+    returned by ``sample_direction``; spectral variants sample the wavelengths with the
+    emitter's ``sample_wavelengths`` as Mitsuba does.
+    """
+    n = max(dr.width(time), dr.width(sample1), dr.width(sample2), dr.width(sample3),
+            dr.width(active))
+    time = mi.Float(time)
+    active = mi.Bool(active)
+    if scene.emitters() is None or len(scene.emitters()) == 0:
+        ray = dr.zeros(mi.Ray3f, n)
+        return ray, dr.zeros(mi.Spectrum, n), dr.zeros(mi.EmitterPtr, n)
+
+    # Emitter choice: exactly Mitsuba's (uniform, or by `sampling_weight`), with 1/pmf.
+    index, selection_weight, sample1 = scene.sample_emitter(mi.Float(sample1), active)
+    emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, active)
+    infinite = active & mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite)
+    finite_kind = active & ~infinite
+
+    # Area / point / spot / ...: Mitsuba's own sample_ray (correct).
+    ray_f, weight_f = emitter.sample_ray(time, sample1, sample2, sample3, finite_kind)
+
+    # Infinite emitters: direction from sample_direction, origin on a disk of radius R
+    # perpendicular to the *world-space* direction, placed outside the bounding sphere.
+    center, radius = emission_sphere(scene)
+    center_v = mi.Point3f(center)
+    it = dr.zeros(mi.Interaction3f, n)
+    it.p = center_v
+    it.time = time
+    spectral = mi.is_spectral
+    if spectral:
+        # Any wavelengths will do for the direction; the real ones are sampled below.
+        it.wavelengths = dr.zeros(mi.Wavelength, n) + 550.0
+    ds, dir_weight = emitter.sample_direction(it, sample3, infinite)
+    d = -ds.d                                   # the ray travels away from the emitter
+    offset = mi.warp.square_to_uniform_disk_concentric(sample2)
+    perp = mi.Frame3f(d).to_world(mi.Vector3f(offset.x, offset.y, 0.0))
+    origin = center_v + (perp - d) * radius
+    area = dr.pi * radius * radius
+    if spectral:
+        si = dr.zeros(mi.SurfaceInteraction3f, n)
+        si.p, si.uv, si.time = origin, ds.uv, time
+        wavelengths, wav_weight = emitter.sample_wavelengths(si, sample1, infinite)
+        pdf = dr.select(ds.delta, 1.0, ds.pdf)
+        weight_i = mi.Spectrum(wav_weight) * (area / pdf)
+        weight_i = dr.select(infinite & (pdf > 0), weight_i, 0.0)
+    else:
+        wavelengths = ray_f.wavelengths
+        weight_i = mi.Spectrum(dir_weight) * area
+    ray_i = mi.Ray3f(origin, d, time, wavelengths)
+
+    ray = mi.Ray3f(dr.select(infinite, ray_i.o, ray_f.o),
+                   dr.select(infinite, ray_i.d, ray_f.d), time)
+    ray.maxt = dr.select(infinite, ray_i.maxt, ray_f.maxt)
+    if spectral:
+        ray.wavelengths = dr.select(infinite, ray_i.wavelengths, ray_f.wavelengths)
+    weight = dr.select(infinite, weight_i, mi.Spectrum(weight_f)) * selection_weight
+    weight = dr.select(active & _finite(weight), weight, 0.0)
+    return ray, weight, emitter

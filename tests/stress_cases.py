@@ -1,0 +1,594 @@
+"""Scenes and a case runner for the robustness / stress tests (``test_stress.py``).
+
+Run as a script, this module executes ONE case described by a JSON object (given as
+the first command-line argument) in this fresh process, and prints one line
+``STRESS-RESULT {...json...}`` with what it measured. ``test_stress.py`` launches it in a
+subprocess with a timeout, so a hang, an abort or a segfault in one case cannot take the
+test session (or the other cases) down with it.
+
+A case is a dict::
+
+    {"kind": "render" | "error" | "repeat" | "edit" | "threads" | "fuzz",
+     "scene": {"name": <builder in SCENES>, ...builder keyword arguments},
+     "ref_scene": {...}            # optional: the scene path renders (default: "scene")
+     "params": {...},              # pmic parameters (on top of SMALL unless "bare": true)
+     "spp": 8,                     # pmic samples per pixel
+     "path_spp": 1024,             # path samples per pixel (split into PATH_PASSES passes)
+     "path": {...}}                # extra parameters of Mitsuba's path (max_depth is copied)
+
+Kinds:
+
+* ``render``: path (reference) then pmic; report both mean luminances, pmic's count of
+  non-finite values, errors, stats.
+* ``error``: only build the pmic integrator (through ``mi.load_dict``, as a user does)
+  and, if that works, render it; report the exception text (or that none came).
+* ``repeat``: pmic twice with one integrator object, once with a fresh object; report
+  whether the three images are bit-identical.
+* ``edit``: pmic, then double the light's radiance through ``mi.traverse``, pmic again
+  with the same integrator object; report both means.
+* ``threads``: pmic once on this thread, then the same integrator object from two Python
+  threads at once; report whether the thread images equal the single-thread image.
+* ``fuzz``: a list of parameter dicts ("param_sets"), each built and rendered in turn in
+  this process; report for each: the exception (if any), finiteness, the mean.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+import traceback
+
+RESULT_TAG = "STRESS-RESULT "
+
+#: Small pmic settings used by every case unless it overrides them.
+SMALL = {"global_photons": 30_000, "caustic_photons": 10_000, "gather_rays": 64}
+#: path's reference is rendered in this many passes with different seeds: the spread of
+#: the pass means gives the reference's own standard error.
+PATH_PASSES = 4
+
+
+# -------------------------------------------------------------------------------------
+# Scenes. Every builder returns (scene dict, light_scale) where light_scale is the largest
+# radiance (or intensity / irradiance) of the scene's lights: "black" bounds are relative
+# to it.
+# -------------------------------------------------------------------------------------
+def _mi():
+    import mitsuba as mi
+    return mi
+
+
+def _T():
+    return _mi().ScalarTransform4f()
+
+
+def _rgb(v):
+    if isinstance(v, (int, float)):
+        v = [v, v, v]
+    return {"type": "rgb", "value": list(v)}
+
+
+def _diffuse(v):
+    return {"type": "diffuse", "reflectance": _rgb(v)}
+
+
+def _sensor(origin, target, res, fov=40.0, up=(0, 1, 0), scale=1.0):
+    return {
+        "type": "perspective", "fov": fov, "fov_axis": "smaller",
+        "near_clip": 1e-3 * scale, "far_clip": 1e3 * scale,
+        "to_world": _T().look_at(origin=list(origin), target=list(target), up=list(up)),
+        "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"},
+                 "pixel_format": "rgb"},
+        "sampler": {"type": "independent"},
+    }
+
+
+def cornell(res=32, scale=1.0, remove=(), light=True, radiance_factor=1.0, back=None,
+            extra=None, bsdf_object=None, twosided_panel=False, thin_slab=False,
+            zero_area=False, hidden_light=False):
+    """Mitsuba's Cornell box (open at the front), optionally scaled and edited."""
+    mi = _mi()
+    d = mi.cornell_box()
+    d.pop("integrator", None)
+    for name in remove:
+        d.pop(name)
+    light_scale = 0.0
+    if light:
+        rad = [c * radiance_factor for c in d["light"]["emitter"]["radiance"]["value"]]
+        d["light"]["emitter"]["radiance"]["value"] = rad
+        light_scale = max(rad)
+    else:
+        d.pop("light")
+    if back is not None:
+        d["back"]["bsdf"] = back
+    if bsdf_object is not None:
+        # The tested BSDF on a sphere where the large box was.
+        d.pop("large-box", None)
+        d["object"] = {"type": "sphere", "center": [-0.35, -0.6, -0.25], "radius": 0.4,
+                       "bsdf": bsdf_object}
+    if twosided_panel:
+        # A panel whose front faces the back wall: the camera sees its back side.
+        d["panel"] = {"type": "rectangle",
+                      "to_world": _T().translate([0.0, -0.1, 0.45]) @ _T().rotate([0, 1, 0], 180)
+                      @ _T().scale([0.35, 0.35, 1.0]),
+                      "bsdf": {"type": "twosided", "bsdf": _diffuse([0.8, 0.8, 0.2])}}
+    if thin_slab:
+        # A floating slab 2e-4 thick under the light (its underside is lit indirectly).
+        d["slab"] = {"type": "cube", "to_world": _T().translate([0.0, 0.35, 0.1])
+                     @ _T().scale([0.45, 1e-4, 0.45]), "bsdf": {"type": "ref", "id": "white"}}
+    if zero_area:
+        # A rectangle squashed to zero area (scale 0 on one axis) in mid-air.
+        d["flat"] = {"type": "rectangle", "to_world": _T().translate([0.2, 0.1, 0.3])
+                     @ _T().scale([0.4, 0.0, 1.0]), "bsdf": {"type": "ref", "id": "white"}}
+    if hidden_light:
+        # An area light facing the camera in front of a red back wall.
+        d["back"]["bsdf"] = {"type": "ref", "id": "red"}
+        d["front-light"] = {"type": "rectangle",
+                            "to_world": _T().translate([0.1, 0.1, -0.6]) @ _T().scale(0.25),
+                            "emitter": {"type": "area", "radiance": _rgb(4.0)}}
+        light_scale = max(light_scale, 4.0)
+    for key, value in (extra or {}).items():
+        d[key] = value
+        if isinstance(value, dict):
+            em = value if value.get("type") in EMITTER_TYPES else value.get("emitter")
+            if isinstance(em, dict):
+                light_scale = max(light_scale, _emitter_scale(em))
+    d["sensor"] = _sensor([0, 0, 3.9], [0, 0, 0], res, fov=39.3077)
+    if scale != 1.0:
+        S = _T().scale(scale)
+        for value in d.values():
+            if isinstance(value, dict) and "to_world" in value:
+                value["to_world"] = S @ value["to_world"]
+            if isinstance(value, dict) and value.get("type") == "sphere" and "center" in value:
+                value["center"] = [c * scale for c in value["center"]]
+                value["radius"] = value["radius"] * scale
+        d["sensor"] = _sensor([0, 0, 3.9 * scale], [0, 0, 0], res, fov=39.3077, scale=scale)
+    return d, light_scale
+
+
+EMITTER_TYPES = ("area", "point", "spot", "directional", "constant", "envmap")
+
+
+def _emitter_scale(em):
+    for key in ("radiance", "intensity", "irradiance", "scale"):
+        v = em.get(key)
+        if isinstance(v, dict) and "value" in v:
+            vals = v["value"] if isinstance(v["value"], (list, tuple)) else [v["value"]]
+            finite = [abs(x) for x in vals if math.isfinite(x)]
+            return max(finite) if finite else 0.0
+        if isinstance(v, (int, float)) and math.isfinite(v):
+            return abs(v)
+    return 1.0
+
+
+def cornell_lights(res=32, kind="point"):
+    """The Cornell box with its area light replaced by a point or a spot light."""
+    if kind == "point":
+        em = {"type": "point", "position": [0.0, 0.85, 0.0], "intensity": _rgb(4.0)}
+    else:
+        em = {"type": "spot", "intensity": _rgb(8.0), "cutoff_angle": 40.0, "beam_width": 30.0,
+              "to_world": _T().look_at(origin=[0.0, 0.95, 0.0], target=[0.0, -1.0, 0.0],
+                                       up=[0, 0, 1])}
+    return cornell(res=res, light=False, extra={"lamp": em})
+
+
+def cornell_object(res=32, bsdf="diffuse"):
+    return cornell(res=res, bsdf_object=BSDFS[bsdf]())
+
+
+def _checker(c0, c1, n=4):
+    return {"type": "checkerboard", "color0": _rgb(c0), "color1": _rgb(c1),
+            "to_uv": _mi().ScalarTransform4f().scale([n, n, 1])}
+
+
+BSDFS = {
+    "diffuse": lambda: _diffuse([0.3, 0.6, 0.8]),
+    "roughplastic": lambda: {"type": "roughplastic", "diffuse_reflectance": _rgb([0.2, 0.5, 0.8]),
+                             "alpha": 0.2},
+    "plastic": lambda: {"type": "plastic", "diffuse_reflectance": _rgb([0.8, 0.3, 0.2])},
+    "principled": lambda: {"type": "principled", "base_color": _rgb([0.7, 0.5, 0.3]),
+                           "roughness": 0.4, "metallic": 0.2, "specular": 0.5},
+    "roughconductor": lambda: {"type": "roughconductor", "material": "Au", "alpha": 0.15},
+    "conductor": lambda: {"type": "conductor", "material": "Ag"},
+    "dielectric": lambda: {"type": "dielectric", "int_ior": 1.5},
+    "thindielectric": lambda: {"type": "thindielectric", "int_ior": 1.5},
+    "mask": lambda: {"type": "mask", "opacity": _checker(0.1, 0.9),
+                     "bsdf": _diffuse([0.2, 0.7, 0.3])},
+}
+
+
+def twosided_back(res=32):
+    return cornell(res=res, twosided_panel=True)
+
+
+def thin_box(res=32):
+    return cornell(res=res, thin_slab=True)
+
+
+def zero_area_rect(res=32):
+    return cornell(res=res, zero_area=True)
+
+
+def hidden_light(res=32):
+    return cornell(res=res, hidden_light=True)
+
+
+def huge_ground(res=32):
+    """A 2e6-unit ground plane under a 1-unit box, lit by a small area light."""
+    d = {
+        "type": "scene",
+        "ground": {"type": "rectangle", "bsdf": _diffuse(0.5),
+                   "to_world": _T().rotate([1, 0, 0], -90) @ _T().scale(1e6)},
+        "box": {"type": "cube", "bsdf": _diffuse([0.7, 0.4, 0.3]),
+                "to_world": _T().translate([0, 0.5, 0]) @ _T().scale(0.5)},
+        "light": {"type": "rectangle", "emitter": {"type": "area", "radiance": _rgb(10.0)},
+                  "to_world": _T().translate([0.5, 3.0, 0.5]) @ _T().rotate([1, 0, 0], 90)
+                  @ _T().scale(0.5)},
+        "sensor": _sensor([0, 2.5, 5.0], [0, 0.4, 0], res, fov=40),
+    }
+    return d, 10.0
+
+
+def split_room(res=32, camera="dark"):
+    """A closed 4x2x2 room split in two by a 2 mm wall; the light is in the +x half."""
+    wall = _diffuse(0.7)
+    d = {
+        "type": "scene",
+        "room": {"type": "cube", "flip_normals": True, "bsdf": wall,
+                 "to_world": _T().scale([2.0, 1.0, 1.0])},
+        # 2 mm thick, reaching slightly into the room's walls: no gap anywhere.
+        "divider": {"type": "cube", "bsdf": _diffuse(0.6),
+                    "to_world": _T().scale([0.001, 1.001, 1.001])},
+        "light": {"type": "rectangle", "emitter": {"type": "area", "radiance": _rgb(10.0)},
+                  "to_world": _T().translate([1.0, 0.99, 0.0]) @ _T().rotate([1, 0, 0], 90)
+                  @ _T().scale(0.3)},
+    }
+    if camera == "dark":
+        d["sensor"] = _sensor([-1.95, 0.0, 0.0], [0.0, -0.2, 0.0], res, fov=70)
+    else:
+        d["sensor"] = _sensor([1.95, 0.0, 0.0], [0.0, -0.2, 0.0], res, fov=70)
+    return d, 10.0
+
+
+def _ones_env():
+    import numpy as np
+    return _mi().Bitmap(np.ones((8, 16, 3), np.float32))
+
+
+def _sun_env():
+    """A sky brighter towards the zenith with a bright patch (a "sun") at one azimuth."""
+    import numpy as np
+    h, w = 16, 32
+    img = np.zeros((h, w, 3), np.float32)
+    rows = np.linspace(1.0, 0.1, h, dtype=np.float32)[:, None]
+    img[:] = (rows * np.array([0.5, 0.7, 1.0], np.float32))[:, None, :].reshape(h, 1, 3)
+    img[3:5, 5:7] = [40.0, 35.0, 25.0]
+    return _mi().Bitmap(img)
+
+
+def outdoor(res=32, emitter="directional"):
+    """Ground, a box and a sphere under an environment or a directional light."""
+    if emitter == "directional":
+        em, scale = {"type": "directional", "direction": [-0.3, -1.0, -0.4],
+                     "irradiance": _rgb(3.0)}, 3.0
+    elif emitter == "constant":
+        em, scale = {"type": "constant", "radiance": _rgb(1.0)}, 1.0
+    elif emitter == "envmap":
+        em, scale = {"type": "envmap", "bitmap": _ones_env()}, 1.0
+    elif emitter == "envmap_rotated":
+        em, scale = {"type": "envmap", "bitmap": _sun_env(),
+                     "to_world": _T().rotate([0, 1, 0], 70) @ _T().rotate([1, 0, 0], 20)}, 40.0
+    else:
+        raise ValueError(emitter)
+    d = {
+        "type": "scene",
+        "ground": {"type": "rectangle", "bsdf": _diffuse(0.5),
+                   "to_world": _T().rotate([1, 0, 0], -90) @ _T().scale(3.0)},
+        "box": {"type": "cube", "bsdf": _diffuse([0.7, 0.7, 0.7]),
+                "to_world": _T().translate([-0.4, 0.5, 0]) @ _T().scale(0.5)},
+        "ball": {"type": "sphere", "center": [0.9, 0.4, 0.6], "radius": 0.4,
+                 "bsdf": _diffuse([0.8, 0.2, 0.2])},
+        "sky": em,
+        "sensor": _sensor([0, 3.0, 5.0], [0, 0.3, 0], res, fov=45),
+    }
+    return d, scale
+
+
+def enclosed_light(res=32):
+    """An emitting sphere inside a closed box standing on a ground plane."""
+    d = {
+        "type": "scene",
+        "ground": {"type": "rectangle", "bsdf": _diffuse(0.5),
+                   "to_world": _T().rotate([1, 0, 0], -90) @ _T().scale(3.0)},
+        "box": {"type": "cube", "bsdf": {"type": "twosided", "bsdf": _diffuse(0.8)},
+                "to_world": _T().translate([0, 0.5, 0]) @ _T().scale(0.5)},
+        "bulb": {"type": "sphere", "center": [0, 0.5, 0], "radius": 0.2,
+                 "emitter": {"type": "area", "radiance": _rgb(10.0)}},
+        "sensor": _sensor([0, 2.5, 4.0], [0, 0.4, 0], res, fov=45),
+    }
+    return d, 10.0
+
+
+def nan_emitter(res=32, which="point", value="nan", reference=False):
+    """The Cornell box plus a second light whose radiance is NaN (or Inf).
+
+    ``reference=True`` gives the same geometry without that light (what path renders)."""
+    bad = float(value)
+    if which == "point":
+        extra = {} if reference else {
+            "bad-light": {"type": "point", "position": [0.4, 0.3, 0.3], "intensity": _rgb(bad)}}
+    else:
+        sphere = {"type": "sphere", "center": [0.5, 0.5, 0.0], "radius": 0.1,
+                  "bsdf": _diffuse(0.0)}
+        if not reference:
+            sphere["emitter"] = {"type": "area", "radiance": _rgb(bad)}
+        extra = {"bad-light": sphere}
+    d, scale = cornell(res=res, extra=extra)
+    return d, scale
+
+
+def nan_texture(res=32, replace=False):
+    """The Cornell box whose back wall has a 16x16 bitmap texture with NaN/Inf texels.
+
+    ``replace=True`` puts 0 in those texels instead (path's reference)."""
+    import numpy as np
+    mi = _mi()
+    tex = np.full((16, 16, 3), 0.6, np.float32)
+    bad = [(2, 3, np.nan), (8, 8, np.inf), (12, 5, np.nan), (5, 13, np.inf), (10, 11, -np.inf)]
+    for r, c, v in bad:
+        tex[r, c] = 0.0 if replace else v
+    back = {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(tex),
+                                               "filter_type": "nearest", "raw": True}}
+    return cornell(res=res, back=back)
+
+
+def random_scene(res=24, seed=0, boxes=None):
+    """A closed room (a flipped cube) with a few random boxes, spheres and rectangles of
+    random diffuse albedo and one area light under the ceiling. ``boxes`` (from the
+    hypothesis strategy) lists the objects; else they come from ``seed``."""
+    import numpy as np
+    if boxes is None:
+        rng = np.random.default_rng(seed)
+        boxes = []
+        for _ in range(int(rng.integers(1, 5))):
+            boxes.append({"kind": str(rng.choice(["cube", "sphere", "rectangle"])),
+                          "pos": rng.uniform(-0.6, 0.6, 3).tolist(),
+                          "size": float(rng.uniform(0.05, 0.35)),
+                          "albedo": rng.uniform(0.05, 0.95, 3).tolist(),
+                          "angle": float(rng.uniform(0, 180))})
+    d = {
+        "type": "scene",
+        "room": {"type": "cube", "flip_normals": True, "bsdf": _diffuse(0.6)},
+        "light": {"type": "rectangle", "emitter": {"type": "area", "radiance": _rgb(8.0)},
+                  "to_world": _T().translate([0, 0.98, 0]) @ _T().rotate([1, 0, 0], 90)
+                  @ _T().scale(0.25)},
+        "sensor": _sensor([0, 0, 0.97], [0, -0.1, -1], res, fov=75),
+    }
+    for i, b in enumerate(boxes):
+        pos, size = b["pos"], b["size"]
+        bsdf = _diffuse(b["albedo"])
+        if b["kind"] == "sphere":
+            d[f"obj{i}"] = {"type": "sphere", "center": pos, "radius": size, "bsdf": bsdf}
+        else:
+            tw = _T().translate(pos) @ _T().rotate([0.3, 1, 0.2], b["angle"]) @ _T().scale(size)
+            if b["kind"] == "rectangle":
+                bsdf = {"type": "twosided", "bsdf": bsdf}
+            d[f"obj{i}"] = {"type": b["kind"], "to_world": tw, "bsdf": bsdf}
+    return d, 8.0
+
+
+SCENES = {
+    "cornell": cornell,
+    "cornell_lights": cornell_lights,
+    "cornell_object": cornell_object,
+    "twosided_back": twosided_back,
+    "thin_box": thin_box,
+    "zero_area_rect": zero_area_rect,
+    "hidden_light": hidden_light,
+    "huge_ground": huge_ground,
+    "split_room": split_room,
+    "outdoor": outdoor,
+    "enclosed_light": enclosed_light,
+    "nan_emitter": nan_emitter,
+    "nan_texture": nan_texture,
+    "random_scene": random_scene,
+}
+
+
+def build_scene_dict(spec):
+    spec = dict(spec)
+    name = spec.pop("name")
+    return SCENES[name](**spec)
+
+
+# -------------------------------------------------------------------------------------
+# Measurements
+# -------------------------------------------------------------------------------------
+def luminance_mean(img):
+    import numpy as np
+    a = np.asarray(img, dtype=np.float64)
+    lum = 0.2126 * a[..., 0] + 0.7152 * a[..., 1] + 0.0722 * a[..., 2]
+    return float(lum.mean())
+
+
+def _finite_info(img):
+    import numpy as np
+    a = np.asarray(img)
+    bad = ~np.isfinite(a)
+    return {"nonfinite": int(bad.sum()), "negative": int((a < 0).sum()),
+            "max": float(np.nanmax(np.where(np.isinf(a), np.nan, a))) if a.size and not bad.all() else None}
+
+
+def _pmic_dict(case):
+    params = dict(case.get("params", {}))
+    base = {} if case.get("bare") else dict(SMALL)
+    base.update(params)
+    return {"type": "pmic", **base}
+
+
+def _path_mean(case, mi):
+    ref_spec = case.get("ref_scene", case["scene"])
+    d, _ = build_scene_dict(ref_spec)
+    scene = mi.load_dict(d)
+    params = {"type": "path", "max_depth": int(case.get("params", {}).get("max_depth", -1))}
+    params.update(case.get("path", {}))
+    integ = mi.load_dict(params)
+    spp = int(case.get("path_spp", 1024))
+    per = max(1, spp // PATH_PASSES)
+    means = []
+    t0 = time.perf_counter()
+    for k in range(PATH_PASSES):
+        img = mi.render(scene, integrator=integ, spp=per, seed=1000 + k)
+        means.append(luminance_mean(img))
+    dt = time.perf_counter() - t0
+    m = sum(means) / len(means)
+    var = sum((x - m) ** 2 for x in means) / max(1, len(means) - 1)
+    se = math.sqrt(var / len(means))
+    return {"path_mean": m, "path_se": se, "path_time": dt, "path_spp": per * PATH_PASSES}
+
+
+def _render_pmic(scene, integ, spp, seed=0):
+    import numpy as np
+    import drjit as dr
+    mi = _mi()
+    img = mi.render(scene, integrator=integ, spp=spp, seed=seed)
+    dr.eval(img)
+    return np.array(img)
+
+
+def run(case):
+    """Run one case in this process; return a JSON-able dict."""
+    import warnings
+    import pmic_integrator  # noqa: F401  (sets up LLVM before mitsuba/drjit)
+    import mitsuba as mi
+    import numpy as np
+    mi.set_variant("llvm_ad_rgb")
+    out = {"kind": case["kind"]}
+    caught = []
+    warnings.simplefilter("always")
+    old_show = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        caught.append(f"{category.__name__}: {message}")
+        old_show(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    kind = case["kind"]
+    spp = int(case.get("spp", 8))
+    try:
+        if kind == "error":
+            try:
+                integ = mi.load_dict(_pmic_dict(case))
+            except Exception as e:  # what the user sees
+                out["error"] = {"type": type(e).__name__, "message": str(e), "stage": "load"}
+                return out
+            d, _ = build_scene_dict(case["scene"])
+            scene = mi.load_dict(d)
+            try:
+                img = _render_pmic(scene, integ, spp)
+            except Exception as e:
+                out["error"] = {"type": type(e).__name__, "message": str(e), "stage": "render"}
+                return out
+            out["error"] = None
+            out["pmic_mean"] = luminance_mean(img)
+            out.update(_finite_info(img))
+            return out
+
+        d, light_scale = build_scene_dict(case["scene"])
+        out["light_scale"] = light_scale
+        if kind == "render":
+            if not case.get("no_path"):
+                out.update(_path_mean(case, mi))
+            t0 = time.perf_counter()
+            integ = mi.load_dict(_pmic_dict(case))
+            scene = mi.load_dict(d)
+            img = _render_pmic(scene, integ, spp)
+            out["pmic_time"] = time.perf_counter() - t0
+            out["pmic_mean"] = luminance_mean(img)
+            out.update(_finite_info(img))
+            stats = getattr(integ, "stats", {}) or {}
+            out["stats"] = {k: v for k, v in stats.items()
+                            if isinstance(v, (int, float, str, list)) and not k.startswith("memory")}
+        elif kind == "repeat":
+            integ = mi.load_dict(_pmic_dict(case))
+            scene = mi.load_dict(d)
+            a = _render_pmic(scene, integ, spp)
+            b = _render_pmic(scene, integ, spp)
+            c = _render_pmic(scene, mi.load_dict(_pmic_dict(case)), spp)
+            out.update(pmic_mean=luminance_mean(a), nonfinite=int((~np.isfinite(a)).sum()),
+                       same_object_identical=bool(np.array_equal(a, b)),
+                       fresh_object_identical=bool(np.array_equal(a, c)),
+                       max_diff_same=float(np.abs(a - b).max()),
+                       max_diff_fresh=float(np.abs(a - c).max()))
+        elif kind == "edit":
+            integ = mi.load_dict(_pmic_dict(case))
+            scene = mi.load_dict(d)
+            a = _render_pmic(scene, integ, spp)
+            params = mi.traverse(scene)
+            key = case.get("edit_key", "light.emitter.radiance.value")
+            params[key] = params[key] * 2.0
+            params.update()
+            b = _render_pmic(scene, integ, spp)
+            out.update(mean_before=luminance_mean(a), mean_after=luminance_mean(b),
+                       nonfinite=int((~np.isfinite(a)).sum() + (~np.isfinite(b)).sum()),
+                       cache_builds=int(integ.stats.get("cache_builds", -1)))
+        elif kind == "threads":
+            import threading
+            integ = mi.load_dict(_pmic_dict(case))
+            scene = mi.load_dict(d)
+            single = _render_pmic(scene, integ, spp)
+            results, errors = [None, None], [None, None]
+
+            def work(i):
+                try:
+                    results[i] = _render_pmic(scene, integ, spp)
+                except Exception as e:  # reported, not raised: the other thread goes on
+                    errors[i] = f"{type(e).__name__}: {e}"
+
+            threads = [threading.Thread(target=work, args=(i,)) for i in range(2)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            out["pmic_mean"] = luminance_mean(single)
+            out["thread_errors"] = errors
+            out["thread_equal"] = [bool(r is not None and np.array_equal(r, single)) for r in results]
+            out["thread_max_diff"] = [None if r is None else float(np.abs(r - single).max())
+                                      for r in results]
+            out["thread_means"] = [None if r is None else luminance_mean(r) for r in results]
+        elif kind == "fuzz":
+            scene = mi.load_dict(d)
+            runs = []
+            for params in case["param_sets"]:
+                entry = {"params": params}
+                c = dict(case, params=params)
+                t0 = time.perf_counter()
+                try:
+                    integ = mi.load_dict(_pmic_dict(c))
+                    img = _render_pmic(scene, integ, spp)
+                    entry.update(mean=luminance_mean(img), **_finite_info(img))
+                except Exception as e:
+                    entry["error"] = {"type": type(e).__name__, "message": str(e)}
+                entry["time"] = time.perf_counter() - t0
+                runs.append(entry)
+            out["runs"] = runs
+        else:
+            raise ValueError(f"unknown case kind {kind!r}")
+    except Exception as e:
+        out["exception"] = {"type": type(e).__name__, "message": str(e),
+                            "traceback": traceback.format_exc()[-3000:]}
+    finally:
+        out["warnings"] = caught[-20:]
+    return out
+
+
+def main(argv):
+    case = json.loads(argv[1])
+    out = run(case)
+    sys.stdout.flush()
+    print(RESULT_TAG + json.dumps(out, default=str), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))
