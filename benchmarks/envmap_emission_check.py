@@ -269,7 +269,15 @@ def envmap_diagnostics(scene, emitter, to_world, n, seed):
     flux_ref = Lq.reshape(nzb, 32, npb, 32).sum((1, 3)).reshape(-1)
     big = flux_ref > 0.02 * flux_ref.max()
     bins = flux_mc[big] / flux_ref[big]
-    return dict(along=(float(along.min()), float(along.max())), lateral_max=float(lateral.max()),
+    # The same origin checks on the workaround's rays.
+    ray_p, _, _, _ = emit(scene, "pmic", n, seed)
+    rel_p = (ray_p.o.numpy().T.astype(np.float64) - c) / R
+    d_p = ray_p.d.numpy().T.astype(np.float64)
+    along_p = (rel_p * d_p).sum(1)
+    lat_p = np.linalg.norm(rel_p - along_p[:, None] * d_p, axis=1)
+    pmic = (float(np.abs(along_p + 1).max()), float(lat_p.max()),
+            float((np.linalg.norm(rel_p, axis=1) < 1 - 1e-4).mean()))
+    return dict(pmic=pmic, along=(float(along.min()), float(along.max())), lateral_max=float(lateral.max()),
                 inside=float(inside.mean()), hyp=hyp, cos_a=(float(cos_a.min()), float(np.median(cos_a))),
                 weight_ratio=(float(np.median(wratio)), float(np.percentile(np.abs(wratio - 1), 99.9))),
                 bins=(float(bins.min()), float(bins.max()), int(big.sum())),
@@ -306,6 +314,57 @@ def matpreview_scene_check(resx=64, resy=48, spp_path=64, spp_pt=256):
         img = mi.render(scene, integrator=integ, spp=spp, seed=3)
         out[name] = float(np.asarray(img).mean())
     return out
+
+
+# ---------------------------------------------------------------- (d) robustness
+def robustness(n=1 << 16):
+    """NaN/inf texels, inactive lanes, samples at 0 and 1: weights finite, rays finite."""
+    rows = []
+    variants = [("envmap with a NaN texel", np.nan), ("envmap with an inf texel", np.inf),
+                ("envmap with a negative texel", -50.0), ("envmap, top 10 rows black", 0.0)]
+    for label, value in variants:
+        img = np.array(blob_bitmap(), copy=True)
+        if label.endswith("black"):
+            img[:10] = 0
+        else:
+            img[5, 7] = value
+        scene = mi.load_dict(square({
+            "env": {"type": "envmap", "bitmap": mi.Bitmap(img.astype(np.float32)),
+                    "to_world": rot([1, 0, 0], 90)},
+            "lamp": {"type": "sphere", "radius": 0.1, "center": [0, 0, 1],
+                     "emitter": {"type": "area"}}}))
+        s1, s2, s3 = rng_samples(n, 1)
+        act = dr.arange(mi.UInt32, n) % 2 == 0            # odd lanes inactive
+        for which in ("mitsuba", "pmic"):
+            if which == "mitsuba":
+                ray, w, _ = scene.sample_emitter_ray(dr.zeros(mi.Float, n), s1, s2, s3, act)
+            else:
+                from pmic_integrator.emission import sample_emitter_rays
+                ray, w, _ = sample_emitter_rays(scene, dr.zeros(mi.Float, n), s1, s2, s3, act)
+            wn, o, d = w.numpy(), ray.o.numpy(), ray.d.numpy()
+            rows.append((label, which, int((~np.isfinite(wn).all(0)).sum()),
+                         int((np.abs(wn[:, 1::2]) > 0).any(0).sum()),
+                         int((~(np.isfinite(o).all(0) & np.isfinite(d).all(0))).sum()),
+                         int((np.abs(wn).max(0) > 0).sum())))
+    vals = [0.0, 1e-7, 0.5, 1 - 2 ** -24, 1.0]
+    g = np.array(np.meshgrid(*[vals] * 5)).reshape(5, -1).astype(np.float32)
+    m = g.shape[1]
+    scene = mi.load_dict(square({"env": {"type": "envmap", "bitmap": blob_bitmap(),
+                                         "to_world": rot([1, 0, 0], 90)}}))
+    for which in ("mitsuba", "pmic"):
+        args = (dr.zeros(mi.Float, m), mi.Float(g[0]), mi.Point2f(g[1], g[2]),
+                mi.Point2f(g[3], g[4]), mi.Bool(True))
+        if which == "mitsuba":
+            ray, w, _ = scene.sample_emitter_ray(*args)
+        else:
+            from pmic_integrator.emission import sample_emitter_rays
+            ray, w, _ = sample_emitter_rays(scene, *args)
+        wn, o, d = w.numpy(), ray.o.numpy(), ray.d.numpy()
+        rows.append((f"samples in {{0,1e-7,.5,1-2^-24,1}}^5", which,
+                     int((~np.isfinite(wn).all(0)).sum()), 0,
+                     int((~(np.isfinite(o).all(0) & np.isfinite(d).all(0))).sum()),
+                     int((np.abs(wn).max(0) > 0).sum())))
+    return rows
 
 
 # ---------------------------------------------------------------- main
@@ -348,13 +407,15 @@ def main(argv=None):
     print("\n(b) Mitsuba envmap sample_ray, per ray: origin o, direction d, R = bounding radius")
     print(f"{'case':44s} {'(o-c).d/R':>15s} {'lat/R':>6s} {'in%':>5s} | max|o - o_hyp|/R: "
           f"{'Frame(d_loc)':>12s} {'Frame(-d)':>9s} | {'|cos a| min,med':>15s} | "
-          f"w/(L pi R2/pdf) med,p99.9dev | dir-bin flux/ref min..max (bins) total")
+          f"w/(L pi R2/pdf) med,p99.9dev | dir-bin flux/ref min..max (bins) total "
+          f"|| pmic: max|(o-c).d/R+1| lat/R in%")
     for name, g in diag_rows:
         print(f"{name:44s} {g['along'][0]:7.3f},{g['along'][1]:7.3f} {g['lateral_max']:6.3f} "
               f"{100 * g['inside']:5.1f} | {g['hyp']['Frame3f(d_local)']:12.2e} "
               f"{g['hyp']['Frame3f(-d_world)']:9.2e} | {g['cos_a'][0]:6.3f},{g['cos_a'][1]:6.3f}  | "
               f"{g['weight_ratio'][0]:.5f}, {g['weight_ratio'][1]:.1e} | "
-              f"{g['bins'][0]:.3f}..{g['bins'][1]:.3f} ({g['bins'][2]}) {g['total']:.4f}")
+              f"{g['bins'][0]:.3f}..{g['bins'][1]:.3f} ({g['bins'][2]}) {g['total']:.4f} "
+              f"|| {g['pmic'][0]:.1e} {g['pmic'][1]:.3f} {100 * g['pmic'][2]:.1f}")
     if render_rows:
         print("\n(c) mean of a 32x32 image of the square (its central 1.8x1.8), max_depth 2 "
               "(direct light only); for infinite emitters E = path * pi / rho vs E_nee")
@@ -366,6 +427,11 @@ def main(argv=None):
         r = matpreview_scene_check()
         print(f"\n(c) matpreview scene (64x48, max_depth 3, hide_emitters): path {r['path']:.4f} "
               f"ptracer {r['ptracer']:.4f} ratio {r['ptracer'] / r['path']:.3f}")
+    print("\n(d) robustness (2^16 lanes, half inactive; or 3125 edge samples)")
+    print(f"{'case':40s} {'routine':8s} {'w non-finite':>12s} {'inactive w!=0':>13s} "
+          f"{'ray non-finite':>14s} {'w != 0':>7s}")
+    for r in robustness():
+        print(f"{r[0]:40s} {r[1]:8s} {r[2]:12d} {r[3]:13d} {r[4]:14d} {r[5]:7d}")
     print(f"\n{_time.time() - t0:.1f} s")
 
 

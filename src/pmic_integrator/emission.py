@@ -59,12 +59,14 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
     Returns ``(ray, weight, emitter)``: ``weight`` is the flux carried by the sample
     (emitted radiance over the spatio-directional density, including ``1/pmf`` of the
     emitter choice, which is Mitsuba's own ``scene.sample_emitter``). Lanes that are
-    inactive, that pick no valid sample, or whose weight is not finite get weight 0.
+    inactive, that pick no valid sample, or whose weight is not finite (NaN, inf) get
+    weight 0 and a finite ray with ``maxt = 0`` that hits nothing.
 
     Vectorised (one Dr.Jit wavefront, no Python loop over lanes); scenes with several
     emitters of mixed kinds are fine. RGB and monochromatic variants use the weight
     returned by ``sample_direction``; spectral variants sample the wavelengths with the
-    emitter's ``sample_wavelengths`` as Mitsuba does.
+    emitter's ``sample_wavelengths`` as Mitsuba does. Polarised variants are not
+    supported.
     """
     n = max(dr.width(time), dr.width(sample1), dr.width(sample2), dr.width(sample3),
             dr.width(active))
@@ -93,7 +95,7 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
     spectral = mi.is_spectral
     if spectral:
         # Any wavelengths will do for the direction; the real ones are sampled below.
-        it.wavelengths = dr.zeros(mi.Wavelength, n) + 550.0
+        it.wavelengths = it.wavelengths + 550.0
     ds, dir_weight = emitter.sample_direction(it, sample3, infinite)
     d = -ds.d                                   # the ray travels away from the emitter
     offset = mi.warp.square_to_uniform_disk_concentric(sample2)
@@ -118,5 +120,11 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
     if spectral:
         ray.wavelengths = dr.select(infinite, ray_i.wavelengths, ray_f.wavelengths)
     weight = dr.select(infinite, weight_i, mi.Spectrum(weight_f)) * selection_weight
-    weight = dr.select(active & _finite(weight), weight, 0.0)
+    alive = active & _finite(weight) & (dr.max(dr.abs(weight)) > 0)
+    weight = dr.select(alive, weight, 0.0)
+    # Dead lanes (weight 0) can carry NaN origins/directions (e.g. an envmap with a NaN
+    # texel): give them a harmless ray that hits nothing.
+    ray.o = dr.select(alive, ray.o, center_v)
+    ray.d = dr.select(alive, ray.d, mi.Vector3f(0.0, 0.0, 1.0))
+    ray.maxt = dr.select(alive, ray.maxt, 0.0)
     return ray, weight, emitter

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context  # noqa: F401
 from .hashgrid import PointGrid
 from .irradiance import nearest_photon
 from .photons import PhotonMap
@@ -23,25 +24,6 @@ from .photons import PhotonMap
 #: Specular/glossy bounces a gather ray may follow before it gives up (glass needs two
 #: to get through a sphere; four covers a reflection of a refraction).
 GATHER_SPECULAR_BOUNCES = 4
-
-UP = mi.Vector3f(0.0, 0.0, 1.0)
-
-
-def diffuse_response(bsdf, si: mi.SurfaceInteraction3f, active) -> mi.Color3f:
-    """``f_d``: the diffuse lobe's BSDF value, so that outgoing radiance is f_d · E.
-
-    Evaluated for light arriving along the normal; exact (ρ/π) for Lambertian surfaces,
-    and it includes the Fresnel losses of plastic-like coatings, which ρ alone does not.
-    """
-    ctx = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.Diffuse), None)
-    return mi.Color3f(bsdf.eval(ctx, si, UP, active))
-
-
-def non_diffuse_context(mode=mi.TransportMode.Radiance) -> mi.BSDFContext:
-    """A context that samples/evaluates every lobe but the diffuse ones."""
-    mask = int(mi.BSDFFlags.All) & ~int(mi.BSDFFlags.Diffuse)
-    return mi.BSDFContext(mode, mask, None)
-
 
 def stratified_directions(strata_theta: int, strata_phi: int, sample_index: mi.UInt32,
                           u1: mi.Float, u2: mi.Float):
@@ -126,9 +108,12 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
         n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
         diffuse = active & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
         irradiance = source.irradiance_at(si, n, diffuse)
-        radiance += dr.select(diffuse, throughput * diffuse_response(bsdf, si, diffuse) * irradiance, 0.0)
+        reflected = throughput * diffuse_response(bsdf, si, diffuse) * irradiance
+        radiance += dr.select(diffuse & dr.all(dr.isfinite(reflected)), reflected, 0.0)
         rest = active & (mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy))
         rest &= bounce < GATHER_SPECULAR_BOUNCES
+        # A BSDF that ignores lobe masks gave its whole response above: stop there.
+        rest &= lobes_separable(bsdf, si, rest & diffuse)
         bs, weight = bsdf.sample(ctx_specular, si, rng.next_float32(),
                                  mi.Point2f(rng.next_float32(), rng.next_float32()), rest)
         throughput *= weight

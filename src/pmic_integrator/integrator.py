@@ -15,7 +15,10 @@ import numpy as np
 from . import cache as cache_mod
 from ._jit import concat, every_nth, opaque_float, rng as make_rng
 from .cache import CacheRecords, RecordIndex
-from .gather import GatherSource, diffuse_response, non_diffuse_context, trace_gather_rays
+from mitsuba.ad.integrators.common import mis_weight
+
+from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
+from .gather import GatherSource, trace_gather_rays
 from .hashgrid import BallGrid, PointGrid
 from .irradiance import estimate_irradiance, lookup_radius, precompute_irradiance
 from .photons import CAUSTIC, GLOBAL, PhotonMap, trace_photons
@@ -51,10 +54,10 @@ MAX_PATHS_PER_PHOTON = 100
 MIN_MAX_PATHS = 1 << 22
 
 
-def _mis_weight(pdf_a, pdf_b):
-    """Power heuristic; a is the strategy that produced the sample."""
-    a2 = dr.square(pdf_a)
-    return dr.detach(dr.select(pdf_a > 0, a2 / (a2 + dr.square(pdf_b)), 0.0))
+def _finite(value, active=True):
+    """``value`` where ``active`` and every channel is finite, else 0: a NaN or Inf from
+    one emitter, texel or sample must cost that sample only."""
+    return dr.select(mi.Bool(active) & dr.all(dr.isfinite(value)), value, 0.0)
 
 
 @dataclass
@@ -66,6 +69,7 @@ class SceneInfo:
     emitters: int  #: number of emitters
     has_diffuse: bool  #: some BSDF has a diffuse lobe (else no cache, no global map)
     has_specular: bool  #: some BSDF has a delta or glossy lobe (else no caustic map)
+    has_infinite_emitter: bool = False  #: an environment (envmap, constant) lights the scene
 
     @staticmethod
     def of(scene: mi.Scene) -> "SceneInfo":
@@ -73,7 +77,8 @@ class SceneInfo:
         diagonal = float(dr.norm(bbox.extents())) if bbox.valid() else 0.0
         area, has_diffuse, has_specular = 0.0, False, False
         for shape in scene.shapes():
-            area += float(dr.sum(shape.surface_area())[0]) if hasattr(shape, "surface_area") else 0.0
+            a = float(dr.sum(shape.surface_area())[0]) if hasattr(shape, "surface_area") else 0.0
+            area += a if math.isfinite(a) and a > 0 else 0.0
             bsdf = shape.bsdf()
             flags = int(bsdf.flags()) if bsdf is not None else 0
             has_diffuse |= bool(flags & int(mi.BSDFFlags.Diffuse))
@@ -82,7 +87,8 @@ class SceneInfo:
             diagonal = 1.0
         if not math.isfinite(area) or area <= 0:
             area = diagonal * diagonal
-        return SceneInfo(diagonal, area, len(scene.emitters()), has_diffuse, has_specular)
+        infinite = any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) for e in scene.emitters())
+        return SceneInfo(diagonal, area, len(scene.emitters()), has_diffuse, has_specular, infinite)
 
 
 @dataclass
@@ -585,89 +591,149 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                    skip_specular_paths=prepared.caustic_map.count > 0,
                                    active=active)
 
+    @dr.syntax
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,
                medium: mi.Medium = None, active: mi.Bool = True):
+        """One camera path: emission, direct light, indirect light at diffuse lobes from
+        the cache (or photon map) and the caustic map, continued through the other lobes.
+
+        Every contribution is checked on its own (:func:`_finite`): a NaN or Inf from one
+        emitter or texel drops that sample only, not the whole camera sample.
+        """
+        # Plain values only below: @dr.syntax makes every variable the loop touches
+        # part of its state, and dataclasses would be traversed (and written back).
+        prepared = self._prepared
+        hide_emitters = self.settings.hide_emitters
+        rr_depth = self.settings.rr_depth
         max_depth = 0xFFFFFFFF if self.settings.max_depth == -1 else self.settings.max_depth
-        have_global = self._prepared.global_map.count > 0
-        use_indirect = have_global or self._prepared.caustic_map.count > 0
-        final_gather = self.settings.method == "photon_map" and self.settings.final_gather and have_global
+        max_iterations = -1 if self.settings.max_depth == -1 else self.settings.max_depth
+        use_indirect = prepared.global_map.count > 0 or prepared.caustic_map.count > 0
+        final_gather = self.settings.method == "photon_map" and self.settings.final_gather and \
+            prepared.global_map.count > 0
+        # BSDF sampling of the diffuse lobe for direct light, combined with emitter
+        # sampling by MIS: emitter sampling alone is noisy for large emitters (skies).
+        diffuse_mis = prepared.info.has_infinite_emitter
+        n_em = float(self.settings.direct_samples)
+        del prepared
+        ctx_all = mi.BSDFContext()
         ctx_diffuse = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.Diffuse), None)
         ctx_rest = non_diffuse_context()
 
-        def bounce(active, depth, ray, throughput, result, prev_si, prev_bsdf_pdf,
-                   prev_bsdf_delta, sampler):
-            si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))
+        ray = mi.Ray3f(dr.detach(ray))
+        depth = mi.UInt32(0)
+        L = mi.Spectrum(0.0)
+        β = mi.Spectrum(1.0)
+        η = mi.Float(1.0)
+        active = mi.Bool(active)
+        pi = scene.ray_intersect_preliminary(ray, coherent=True, active=active)
+        if dr.hint(hide_emitters, mode="scalar"):
+            # As Mitsuba's path tracers: a hidden area emitter is looked through.
+            skip = pi.is_valid() & (pi.shape.emitter() != None) & active  # noqa: E711
+            si_skip = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, skip)
+            pi[skip] = self.skip_area_emitters(scene, si_skip.spawn_ray(ray.d), True, skip)
+        prev_si = dr.zeros(mi.SurfaceInteraction3f)
+        prev_bsdf_pdf = mi.Float(1.0)
+        prev_bsdf_delta = mi.Bool(True)
+        valid = mi.Bool(False)
 
-            # Emitters hit directly or through delta/glossy bounces (MIS with NEE).
-            ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
-            em_pdf = scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta)
-            mis = dr.select(prev_bsdf_delta, 1.0, _mis_weight(prev_bsdf_pdf, em_pdf))
-            shown = ~(mi.Bool(self.settings.hide_emitters) & (depth == 0))
-            result += dr.select(shown, throughput * mis * ds.emitter.eval(si, active), 0.0)
-
-            active_next = active & si.is_valid() & (depth + 1 < max_depth)
+        # ``self`` is read, not state: its cache arrays must not be loop variables.
+        while dr.hint(active, label="pmic_camera_path", max_iterations=max_iterations,
+                      exclude=[self]):
+            si = pi.compute_surface_interaction(ray, ray_flags=mi.RayFlags.All, active=active)
+            valid |= (depth == 0) & si.is_valid()
             bsdf = si.bsdf(ray)
             flags = bsdf.flags()
 
-            # Direct light by emitter sampling: the diffuse lobe takes all of it (it is
-            # never BSDF-sampled); the other lobes share it with BSDF sampling by MIS.
-            active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth)
-            direct, sampler = self._direct_light(scene, sampler, si, bsdf, active_em,
-                                                 ctx_diffuse, ctx_rest)
-            result += throughput * direct
+            # ---- Emission reached by BSDF sampling (MIS with emitter sampling) ----
+            ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
+            em_pdf = scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta)
+            mis = dr.select(prev_bsdf_delta, 1.0, mis_weight(prev_bsdf_pdf, n_em * em_pdf))
+            shown = active
+            if dr.hint(hide_emitters, mode="scalar"):
+                shown &= ~((depth == 0) & ~si.is_valid())
+            L += _finite(β * mis * ds.emitter.eval(si, shown), shown)
 
-            # Light that bounced before reaching a diffuse lobe: cache + caustics.
-            diffuse = active_next & mi.has_flag(flags, mi.BSDFFlags.Diffuse) & mi.Bool(use_indirect)
-            diffuse &= depth + 3 <= max_depth
+            active_next = active & si.is_valid() & (depth + 1 < max_depth)
+            has_diffuse = mi.has_flag(flags, mi.BSDFFlags.Diffuse)
+            mixed = has_diffuse & (mi.has_flag(flags, mi.BSDFFlags.Glossy) |
+                                   mi.has_flag(flags, mi.BSDFFlags.Delta))
+            separable = lobes_separable(bsdf, si, active_next & mixed)
+
+            # ---- Direct light by emitter sampling ----
+            active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth)
+            direct = self._direct_light(scene, sampler, si, bsdf, active_em, separable,
+                                        diffuse_mis, ctx_all, ctx_diffuse, ctx_rest)
+            L += β * direct
+
+            # ---- Direct light on the diffuse lobe by BSDF sampling (MIS) ----
+            lit_diffuse = active_next & has_diffuse & separable
+            if dr.hint(diffuse_mis, mode="scalar"):
+                L += β * self._diffuse_emitter_hit(scene, sampler, si, bsdf, lit_diffuse,
+                                                   ctx_diffuse, n_em)
+
+            # ---- Light that bounced before reaching the diffuse lobe ----
+            cached = lit_diffuse & mi.Bool(use_indirect) & (depth + 3 <= max_depth)
             n = mi.Vector3f(si.n)
             n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
-            irradiance = self._indirect_irradiance(si.p, n, depth, diffuse)
-            if final_gather:
-                irradiance += self._final_gather_ray(scene, sampler, si, n, diffuse)
-            result += dr.select(diffuse, throughput * diffuse_response(bsdf, si, diffuse) * irradiance, 0.0)
+            irradiance = self._indirect_irradiance(si.p, n, depth, cached)
+            if dr.hint(final_gather, mode="scalar"):
+                irradiance += self._final_gather_ray(scene, sampler, si, n, cached)
+            L += _finite(β * diffuse_response(bsdf, si, cached) * irradiance, cached)
 
-            # Continue through the delta and glossy lobes only.
-            bs, bsdf_weight = bsdf.sample(ctx_rest, si, sampler.next_1d(), sampler.next_2d(), active_next)
-            throughput *= bsdf_weight
+            # ---- Continue through the other lobes (all lobes if inseparable) ----
+            u1, u2 = sampler.next_1d(), sampler.next_2d()
+            bs, bsdf_weight = bsdf.sample(ctx_rest, si, u1, u2, active_next & separable)
+            bs_all, weight_all = bsdf.sample(ctx_all, si, u1, u2, active_next & ~separable)
+            bs[~separable] = bs_all
+            bsdf_weight[~separable] = weight_all
+            β *= bsdf_weight
+            η *= bs.eta
             prev_si = dr.detach(si, True)
             prev_bsdf_pdf = bs.pdf
             prev_bsdf_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             ray = si.spawn_ray(si.to_world(bs.wo))
+
+            # Russian roulette, as Mitsuba's path tracers (η² keeps it unitless).
+            β_max = dr.max(β)
+            active_next &= (β_max > 0) & (bs.pdf > 0) & dr.all(dr.isfinite(β))
+            rr_prob = dr.minimum(β_max * dr.square(η), 0.95)
+            rr_active = depth + 1 >= rr_depth
+            β[rr_active] *= dr.rcp(dr.maximum(rr_prob, 1e-8))
+            active_next &= ~rr_active | (sampler.next_1d() < rr_prob)
+
+            pi = scene.ray_intersect_preliminary(ray, coherent=False, active=active_next)
             depth += 1
+            active = active_next
 
-            survive = dr.minimum(dr.max(throughput), 0.95)
-            roulette = depth >= self.settings.rr_depth
-            keep = ~roulette | (sampler.next_1d() < survive)
-            throughput = dr.select(roulette, throughput / dr.maximum(survive, 1e-8), throughput)
-            active = active_next & keep & (bs.pdf > 0.0) & (dr.max(throughput) > 0.0)
-            return (active, depth, ray, throughput, result, prev_si, prev_bsdf_pdf,
-                    prev_bsdf_delta, sampler)
+        return L, valid, []
 
-        # Explicit loop state: the maps and the cache that the body reads through
-        # ``self`` are inputs, not state.
-        state = (mi.Bool(active), mi.UInt32(0), mi.Ray3f(ray), mi.Spectrum(1.0), mi.Spectrum(0.0),
-                 dr.zeros(mi.SurfaceInteraction3f), mi.Float(1.0), mi.Bool(True), sampler)
-        state = dr.while_loop(state, lambda active, *rest: active, bounce,
-                              label="pmic_camera_path",
-                              max_iterations=-1 if self.settings.max_depth == -1 else self.settings.max_depth)
-        result = state[4]
-        result = dr.select(dr.all(dr.isfinite(result)), result, 0.0)
-        return result, mi.Bool(True), []
+    def _direct_light(self, scene, sampler, si, bsdf, active, separable, diffuse_mis,
+                      ctx_all, ctx_diffuse, ctx_rest):
+        """Mean of ``direct_samples`` emitter samples (shadow rays) at ``si``.
 
-    def _direct_light(self, scene, sampler, si, bsdf, active, ctx_diffuse, ctx_rest):
-        """Average of ``direct_samples`` emitter samples (shadow rays) at ``si``."""
+        Separable BSDFs: the diffuse lobe takes emitter samples alone (or shares them by
+        MIS with :meth:`_diffuse_emitter_hit`), the other lobes share them with the
+        continuation's BSDF sampling. Inseparable ones share them as a whole.
+        """
+        n_em = float(self.settings.direct_samples)
 
         def one_sample(sampler):
             ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active)
             ok = active & (ds.pdf != 0.0)
             wo = si.to_local(ds.d)
-            f_diffuse = bsdf.eval(ctx_diffuse, si, wo, ok)
-            f_rest, pdf_rest = bsdf.eval_pdf(ctx_rest, si, wo, ok)
-            mis = dr.select(ds.delta, 1.0, _mis_weight(ds.pdf, pdf_rest))
-            return dr.select(ok, em_weight * (f_diffuse + f_rest * mis), 0.0)
+            f_diffuse, pdf_diffuse = bsdf.eval_pdf(ctx_diffuse, si, wo, ok & separable)
+            f_rest, pdf_rest = bsdf.eval_pdf(ctx_rest, si, wo, ok & separable)
+            f_all, pdf_all = bsdf.eval_pdf(ctx_all, si, wo, ok & ~separable)
+            f_rest = dr.select(separable, f_rest, f_all)
+            pdf_rest = dr.select(separable, pdf_rest, pdf_all)
+            f_diffuse = dr.select(separable, f_diffuse, 0.0)
+            em_pdf = n_em * ds.pdf
+            w_rest = dr.select(ds.delta, 1.0, mis_weight(em_pdf, pdf_rest))
+            w_diffuse = dr.select(ds.delta, 1.0, mis_weight(em_pdf, pdf_diffuse)) if diffuse_mis else 1.0
+            return _finite(em_weight * (f_diffuse * w_diffuse + f_rest * w_rest), ok)
 
         if self.settings.direct_samples == 1:
-            return one_sample(sampler), sampler
+            return one_sample(sampler)
 
         def body(k, total, sampler):
             return k + 1, total + one_sample(sampler), sampler
@@ -676,7 +742,20 @@ class PMICIntegrator(mi.SamplingIntegrator):
             (dr.zeros(mi.UInt32, dr.width(si.p)), dr.zeros(mi.Spectrum, dr.width(si.p)), sampler),
             lambda k, total, sampler: active & (k < self.settings.direct_samples), body,
             label="pmic_direct_light")
-        return total / self.settings.direct_samples, sampler
+        return total / n_em
+
+    def _diffuse_emitter_hit(self, scene, sampler, si, bsdf, active, ctx_diffuse, n_em):
+        """Direct light on the diffuse lobe from one BSDF-sampled ray that meets an
+        emitter (an area light or the environment), MIS-weighted against the
+        ``direct_samples`` emitter samples of :meth:`_direct_light`."""
+        bs, weight = bsdf.sample(ctx_diffuse, si, sampler.next_1d(), sampler.next_2d(), active)
+        ok = active & (bs.pdf > 0)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        hit = scene.ray_intersect(ray, mi.RayFlags.All, coherent=False, active=ok)
+        ds = mi.DirectionSample3f(scene, si=hit, ref=si)
+        em_pdf = scene.pdf_emitter_direction(si, ds, ok)
+        emitted = ds.emitter.eval(hit, ok)
+        return _finite(weight * emitted * mis_weight(bs.pdf, n_em * em_pdf), ok)
 
     def _final_gather_ray(self, scene, sampler, si, n, active):
         """One cosine-distributed gather ray reading precomputed irradiance: E ≈ π L."""

@@ -25,6 +25,8 @@ import drjit as dr
 import mitsuba as mi
 
 from ._jit import concat, opaque_u32, rng as make_rng
+from .bsdfs import lobes_separable
+from .emission import sample_emitter_rays
 
 log = logging.getLogger("pmic")
 
@@ -96,8 +98,10 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
     """Trace ``n_paths`` light paths; return photon arrays and their path indices."""
     rng = make_rng(n_paths, seed, stream=first_path)
     path_id = dr.arange(mi.UInt32, n_paths) + opaque_u32(first_path)
-    ray, flux, _ = scene.sample_emitter_ray(
-        mi.Float(0.0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
+    # Not scene.sample_emitter_ray: Mitsuba 3.9 places a rotated envmap's ray origins
+    # on a disk tilted against the rays (too bright by up to 1.8x); see emission.py.
+    ray, flux, _ = sample_emitter_rays(
+        scene, mi.Float(0.0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
         mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True))
     specular_so_far = dr.full(mi.Bool, True, n_paths)
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
@@ -108,7 +112,9 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         if live == 0:
             break
         si = scene.ray_intersect(ray, mi.Bool(True))
-        valid = si.is_valid() & (dr.max(flux) > 0)
+        # A NaN or Inf flux (a NaN emitter, an Inf texel on the way) ends that photon
+        # only: it must not poison the estimates around it.
+        valid = si.is_valid() & (dr.max(flux) > 0) & dr.all(dr.isfinite(flux))
         bsdf = si.bsdf(ray)
         flags = bsdf.flags()
         has_diffuse = valid & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
@@ -132,7 +138,10 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
             break
         bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(),
                                       mi.Point2f(rng.next_float32(), rng.next_float32()), valid)
-        sampled_specular = _is_specular(bs.sampled_type)
+        # A bounce off a BSDF that ignores lobe masks (principled) counts as diffuse:
+        # the camera path cannot split its lobes either, so it must not be a caustic.
+        sampled_specular = _is_specular(bs.sampled_type) & lobes_separable(
+            bsdf, si, valid & has_diffuse & _is_specular(flags))
         specular_so_far &= sampled_specular
         alive = valid & (bs.pdf > 0) & (dr.max(bsdf_weight) > 0)
         if kind == CAUSTIC:
