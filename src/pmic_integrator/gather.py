@@ -16,6 +16,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context  # noqa: F401
+from ._jit import opaque_float
 from .hashgrid import PointGrid
 from .irradiance import nearest_photon
 from .photons import PhotonMap
@@ -24,6 +25,10 @@ from .photons import PhotonMap
 #: Specular/glossy bounces a gather ray may follow before it gives up (glass needs two
 #: to get through a sphere; four covers a reflection of a refraction).
 GATHER_SPECULAR_BOUNCES = 4
+#: The visibility test between a gather hit and its nearest photon starts and ends
+#: this fraction of a lookup radius off the surface (clear of it, well under the width
+#: of any gap that photons could not cross).
+VISIBILITY_LIFT = 0.02
 
 def stratified_directions(strata_theta: int, strata_phi: int, sample_index: mi.UInt32,
                           u1: mi.Float, u2: mi.Float):
@@ -53,34 +58,64 @@ class GatherSource:
 
     photons: PhotonMap  #: global map with ``irradiance`` filled in (stage 2)
     grid: PointGrid  #: hash grid over ``photons`` (cell = ``radius``)
-    radius: float  #: how far to look for the nearest compatible photon
+    radius: float  #: how far to look for the nearest compatible photon (the coarse cell)
     fine_photons: PhotonMap | None = None  #: the same photons in ``fine_grid`` order
     fine_grid: PointGrid | None = None  #: hash grid with cell radius / FINE_GRID_DIVISOR
 
     FINE_GRID_DIVISOR = 2.0
+    #: The full search reaches this many lookup radii: the precomputed photons are half
+    #: the map, and where light is sparse (a room lit through a door) the nearest one
+    #: is often beyond one radius. A ray that found none read zero: 10 % dark at
+    #: lookup_size 8 in such a room.
+    SEARCH_REACH = 4.0
 
     @staticmethod
-    def build(photons: PhotonMap, grid: PointGrid, radius: float) -> "GatherSource":
+    def build(photons: PhotonMap, radius: float) -> "GatherSource":
+        """Grids over ``photons`` (with ``irradiance`` filled in: the result of
+        :func:`~pmic_integrator.irradiance.precompute_irradiance`)."""
         if photons.count == 0:
-            return GatherSource(photons, grid, radius)
+            return GatherSource(photons, PointGrid.build(mi.Point3f(), radius), radius)
+        reach = radius * GatherSource.SEARCH_REACH
+        coarse = PointGrid.build(photons.position, reach)
+        photons_coarse = photons.select(coarse.order)
         fine = PointGrid.build(photons.position, radius / GatherSource.FINE_GRID_DIVISOR)
-        return GatherSource(photons, grid, radius, photons.select(fine.order), fine.sorted_in_place())
+        return GatherSource(photons_coarse, coarse.sorted_in_place(), reach,
+                            photons.select(fine.order), fine.sorted_in_place())
 
-    def irradiance_at(self, si: mi.SurfaceInteraction3f, n: mi.Vector3f, active) -> mi.Color3f:
+    def irradiance_at(self, scene: mi.Scene, si: mi.SurfaceInteraction3f, n: mi.Vector3f,
+                      active) -> mi.Color3f:
+        """Precomputed irradiance of the nearest photon on the surface at ``si`` that
+        ``si`` can see (0 where there is none)."""
         if self.photons.count == 0:
             return dr.zeros(mi.Color3f, dr.width(si.p))
         active = mi.Bool(active)
         found = dr.zeros(mi.Bool, dr.width(si.p))
         result = dr.zeros(mi.Color3f, dr.width(si.p))
+        position = dr.zeros(mi.Point3f, dr.width(si.p))
         if self.fine_grid is not None:
             index, found = nearest_photon(self.fine_photons, self.fine_grid, si.p, n,
                                           0.5 * self.fine_grid.cell_size, active, octant=True)
             found &= active
             result = dr.gather(mi.Color3f, self.fine_photons.irradiance, index, found)
+            position = dr.gather(mi.Point3f, self.fine_photons.position, index, found)
         retry = active & ~found
         index, found2 = nearest_photon(self.photons, self.grid, si.p, n, self.radius, retry)
         found2 &= retry
-        return dr.select(found2, dr.gather(mi.Color3f, self.photons.irradiance, index, found2), result)
+        result = dr.select(found2, dr.gather(mi.Color3f, self.photons.irradiance, index, found2), result)
+        position = dr.select(found2, dr.gather(mi.Point3f, self.photons.position, index, found2), position)
+        found |= found2
+        # The nearest photon may lie across a thin wall (same plane, same normal): the
+        # floor on the lit side of a 2 mm partition lit the dark side. One shadow ray
+        # between the two points, both lifted off the surface, tells them apart.
+        lift = n * opaque_float(VISIBILITY_LIFT * self.radius / self.SEARCH_REACH)
+        origin = si.p + lift
+        to_photon = position + lift - origin
+        distance = dr.norm(to_photon)
+        test = found & (distance > 0)
+        shadow = mi.Ray3f(origin, to_photon / dr.maximum(distance, 1e-30))
+        shadow.maxt = distance * 0.999
+        blocked = scene.ray_test(shadow, test)
+        return dr.select(found & ~blocked, result, 0.0)
 
 
 @dr.syntax
@@ -107,7 +142,7 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
         n = mi.Vector3f(si.n)
         n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
         diffuse = active & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
-        irradiance = source.irradiance_at(si, n, diffuse)
+        irradiance = source.irradiance_at(scene, si, n, diffuse)
         reflected = throughput * diffuse_response(bsdf, si, diffuse) * irradiance
         radiance += dr.select(diffuse & dr.all(dr.isfinite(reflected)), reflected, 0.0)
         rest = active & (mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy))

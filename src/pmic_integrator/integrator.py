@@ -106,7 +106,7 @@ class PreparedScene:
     index: RecordIndex | None  #: the irradiance cache (None: not used)
     skipped: list = field(default_factory=list)  #: passes skipped, with reasons
     stats: dict = field(default_factory=dict)  #: figures of the stages above
-    gather_source: GatherSource | None = None  #: what gather rays read (built on demand)
+    gather_source: GatherSource | None = None  #: what gather rays read (stage 2)
 
 
 class PMICIntegrator(mi.SamplingIntegrator):
@@ -344,6 +344,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
         # Stage 2: hash grids and irradiance precomputed at the global photons.
         t0 = time.perf_counter()
+        gather_source = None
         global_radius = self.settings.lookup_radius or lookup_radius(info.surface_area, global_map.count,
                                                             self.settings.lookup_size)
         caustic_radius = lookup_radius(info.surface_area, caustic_map.count,
@@ -354,7 +355,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
             skipped.append("precomputed irradiance: photon_map without final gathering never reads it")
         elif global_map.count:
             depth_limit = None if self.settings.max_depth == -1 else self.settings.max_depth - 2
-            global_map.irradiance = precompute_irradiance(global_map, global_grid, global_radius, depth_limit)
+            # Gather rays read this copy (half the photons, see precompute_irradiance).
+            gather_source = GatherSource.build(
+                precompute_irradiance(global_map, global_radius, depth_limit), global_radius)
         dr.sync_thread()
         stats["time_precompute"] = time.perf_counter() - t0
         stats["lookup_radius"] = global_radius
@@ -367,7 +370,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         stats["records_fallback"] = 0
         stats["placement_rounds"] = 0
         self._prepared = PreparedScene(key, info, global_map, caustic_map, global_grid, caustic_grid,
-                                       global_radius, caustic_radius, None, skipped, stats)
+                                       global_radius, caustic_radius, None, skipped, stats,
+                                       gather_source)
         if self.settings.method == "pmic" and global_map.count:
             candidates_p, candidates_n = global_map.position, global_map.normal
             index, rounds = self._build_records(scene, candidates_p, candidates_n, None, offset)
@@ -376,8 +380,6 @@ class PMICIntegrator(mi.SamplingIntegrator):
             self._cache_builds += 1
         elif self.settings.method == "pmic":
             skipped.append("cache: no global photons")
-        if self.settings.method == "photon_map" and self.settings.final_gather and global_map.count:
-            self._source()  # built here: the camera kernel may not build grids
         dr.sync_thread()
         self._prepared.index = index
         stats["time_cache"] = time.perf_counter() - t0
@@ -398,10 +400,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         return r_min, r_max
 
     def _source(self) -> GatherSource:
-        p = self._prepared
-        if p.gather_source is None:
-            p.gather_source = GatherSource.build(p.global_map, p.global_grid, p.global_radius)
-        return p.gather_source
+        return self._prepared.gather_source
 
     def _pilot_radius(self, scene, p, n, seed_offset: int, offset):
         """R from a cheap pilot gather, clamped to the world-space bounds."""

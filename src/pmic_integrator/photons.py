@@ -57,6 +57,7 @@ class PhotonMap:
     power: mi.Color3f  #: flux carried [W], already divided by ``paths_emitted``
     depth: mi.UInt32  #: surface interactions since the emitter (1 = direct light)
     specular_path: mi.Bool  #: every earlier bounce was delta/glossy (L S* D: direct or caustic)
+    path: mi.UInt32 = None  #: index of the light path that stored the photon, in [0, paths_emitted)
     paths_emitted: int = 0  #: light paths traced to make this map
     irradiance: mi.Color3f = field(default=None)  #: stage 2 result, None until computed
 
@@ -66,7 +67,7 @@ class PhotonMap:
 
     @staticmethod
     def empty() -> "PhotonMap":
-        return PhotonMap(mi.Point3f(), mi.Vector3f(), mi.Color3f(), mi.UInt32(), mi.Bool(), 0)
+        return PhotonMap(mi.Point3f(), mi.Vector3f(), mi.Color3f(), mi.UInt32(), mi.Bool(), mi.UInt32(), 0)
 
     def select(self, index: mi.UInt32) -> "PhotonMap":
         """The photons at ``index`` (same ``paths_emitted``)."""
@@ -76,15 +77,31 @@ class PhotonMap:
                         dr.gather(mi.Color3f, self.power, index),
                         dr.gather(mi.UInt32, self.depth, index),
                         dr.gather(mi.Bool, self.specular_path, index),
+                        dr.gather(mi.UInt32, self.path, index),
                         self.paths_emitted, irr)
         # Evaluated now: left lazy, every kernel reading the map would redo the gathers
         # (random memory access) instead of reading the reordered arrays.
-        dr.eval(out.position, out.normal, out.power, out.depth, out.specular_path, out.irradiance)
+        dr.eval(out.position, out.normal, out.power, out.depth, out.specular_path, out.path,
+                out.irradiance)
         return out
+
+    def split_by_path(self):
+        """Two independent halves: photons of even light paths and of odd ones, each
+        with ``paths_emitted`` set to its own number of paths (powers unchanged: scale
+        an estimate from a half by ``paths_emitted / half.paths_emitted``)."""
+        odd = (self.path & 1) == 1
+        halves = []
+        for want_odd, paths in ((False, self.paths_emitted - self.paths_emitted // 2),
+                                (True, self.paths_emitted // 2)):
+            keep = dr.compress(odd if want_odd else ~odd)
+            half = self.select(keep) if dr.width(keep) else PhotonMap.empty()
+            half.paths_emitted = paths
+            halves.append(half)
+        return halves[0], halves[1]
 
     def nbytes(self) -> int:
         """Bytes held per the arrays above (positions, normals, powers, depths, E)."""
-        per = 4 * (3 + 3 + 3 + 1 + (3 if self.irradiance is not None else 0)) + 1
+        per = 4 * (3 + 3 + 3 + 1 + 1 + (3 if self.irradiance is not None else 0)) + 1
         return per * self.count
 
 
@@ -200,10 +217,11 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
             cumulative = dr.cumsum(per_path) if hasattr(dr, "cumsum") else dr.prefix_sum(per_path) + per_path
             used_paths = int(dr.count(cumulative <= opaque_u32(remaining))[0]) if dr.width(cumulative) else 0
             keep = dr.compress(path < opaque_u32(emitted + used_paths))
-            pos, nrm, pwr, dep, spec = (dr.gather(type(a), a, keep) for a in (pos, nrm, pwr, dep, spec))
+            pos, nrm, pwr, dep, spec, path = (dr.gather(type(a), a, keep)
+                                              for a in (pos, nrm, pwr, dep, spec, path))
             got = dr.width(keep)
         if got:
-            parts.append((pos, nrm, pwr, dep, spec))
+            parts.append((pos, nrm, pwr, dep, spec, path))
         stored += got
         emitted += used_paths
         batch += 1
@@ -228,7 +246,8 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     power = concat([p[2] for p in parts], mi.Color3f) / float(emitted)
     depth = concat([p[3] for p in parts], mi.UInt32)
     specular = concat([p[4] for p in parts], mi.Bool)
-    dr.eval(position, normal, power, depth, specular)
+    path = concat([p[5] for p in parts], mi.UInt32)
+    dr.eval(position, normal, power, depth, specular, path)
     log.info("pmic: %d %s photons from %d paths in %.2f s", stored, kind, emitted,
              time.perf_counter() - start)
-    return PhotonMap(position, normal, power, depth, specular, emitted)
+    return PhotonMap(position, normal, power, depth, specular, path, emitted)

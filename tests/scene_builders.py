@@ -1,0 +1,90 @@
+"""Small scenes built in code for the tests: each one isolates a way a photon-mapping
+renderer can go wrong on real scenes (light through an opening, thin one-sided walls,
+textured albedo, coated and glossy materials)."""
+from __future__ import annotations
+
+import mitsuba as mi
+import numpy as np
+
+T = mi.ScalarTransform4f
+
+
+def _diffuse(rgb):
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(rgb)}}
+
+
+def _sensor(origin, target, fov=60.0, size=(48, 32), up=(0, 1, 0)):
+    return {"type": "perspective", "fov": fov,
+            "to_world": T().look_at(origin=list(origin), target=list(target), up=list(up)),
+            "film": {"type": "hdrfilm", "width": size[0], "height": size[1],
+                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+            "sampler": {"type": "independent"}}
+
+
+def _box_part(center, half, bsdf):
+    """An axis-aligned solid block (a cube scaled to ``half`` extents)."""
+    return {"type": "cube", "to_world": T().translate(list(center)).scale(list(half)), "bsdf": bsdf}
+
+
+def two_rooms(door_width=0.3, camera_in_lit_room=False, size=(48, 32), wall_bsdf=None,
+              floor_bsdf=None):
+    """Two 2×2×2 rooms side by side (x in [-2, 0] and [0, 2]) joined by a door in a
+    4 cm partition; a small light on the ceiling of the left room only. Seen from the
+    right room, everything is lit through the door: sparse photons, dim, mostly
+    indirect light (the situation of Veach's "door ajar" scene)."""
+    white = wall_bsdf or _diffuse((0.7, 0.7, 0.7))
+    d = {"type": "scene"}
+    # Outer shell: one block with the rooms carved out is awkward with primitives, so
+    # the six sides are thick blocks (closed, two-sided).
+    t = 0.05
+    d["floor"] = _box_part((0, -1 - t, 0), (2 + 2 * t, t, 1 + 2 * t), floor_bsdf or white)
+    d["ceiling"] = _box_part((0, 1 + t, 0), (2 + 2 * t, t, 1 + 2 * t), white)
+    d["back"] = _box_part((0, 0, -1 - t), (2 + 2 * t, 1 + 2 * t, t), _diffuse((0.6, 0.6, 0.4)))
+    d["front"] = _box_part((0, 0, 1 + t), (2 + 2 * t, 1 + 2 * t, t), white)
+    d["left"] = _box_part((-2 - t, 0, 0), (t, 1 + 2 * t, 1 + 2 * t), _diffuse((0.7, 0.2, 0.2)))
+    d["right"] = _box_part((2 + t, 0, 0), (t, 1 + 2 * t, 1 + 2 * t), _diffuse((0.2, 0.6, 0.2)))
+    # Partition at x = 0 with a door of width door_width (z centred at 0.3), 1.4 high.
+    w, z0, h = door_width, 0.3, 1.4
+    pt = 0.02
+    d["part_a"] = _box_part((0, 0, (-1 + (z0 - w / 2)) / 2), (pt, 1, ((z0 - w / 2) + 1) / 2), white)
+    d["part_b"] = _box_part((0, 0, ((z0 + w / 2) + 1) / 2), (pt, 1, (1 - (z0 + w / 2)) / 2), white)
+    d["part_c"] = _box_part((0, (-1 + h + 1) / 2, z0), (pt, (1 - (-1 + h)) / 2, w / 2), white)
+    d["light"] = {"type": "rectangle",
+                  "to_world": T().translate([-1.2, 0.999, -0.2]).rotate([1, 0, 0], 90).scale([0.2, 0.2, 1]),
+                  "bsdf": _diffuse((0, 0, 0)),
+                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [60, 60, 60]}}}
+    if camera_in_lit_room:
+        d["sensor"] = _sensor((-0.3, 0.2, 0.9), (-1.8, -0.3, -0.8), 70, size)
+    else:
+        d["sensor"] = _sensor((1.9, 0.3, 0.9), (0.0, -0.3, -0.2), 70, size)
+    return d
+
+
+def thin_wall_room(camera_on_lit_side=False, thickness=0.002, size=(32, 24)):
+    """A closed 2×1×1 box split by a wall ``thickness`` thick that closes it fully; the
+    light is on the left only. Seen from the right, ``path`` is black."""
+    d = {"type": "scene"}
+    white = _diffuse((0.75, 0.75, 0.75))
+    t = 0.05
+    d["shell_floor"] = _box_part((0, -0.5 - t, 0), (1 + 2 * t, t, 0.5 + 2 * t), white)
+    d["shell_ceiling"] = _box_part((0, 0.5 + t, 0), (1 + 2 * t, t, 0.5 + 2 * t), white)
+    d["shell_back"] = _box_part((0, 0, -0.5 - t), (1 + 2 * t, 0.5 + 2 * t, t), white)
+    d["shell_front"] = _box_part((0, 0, 0.5 + t), (1 + 2 * t, 0.5 + 2 * t, t), white)
+    d["shell_left"] = _box_part((-1 - t, 0, 0), (t, 0.5 + 2 * t, 0.5 + 2 * t), white)
+    d["shell_right"] = _box_part((1 + t, 0, 0), (t, 0.5 + 2 * t, 0.5 + 2 * t), white)
+    d["wall"] = _box_part((0, 0, 0), (thickness / 2, 0.5, 0.5), white)
+    d["light"] = {"type": "sphere", "center": [-0.5, 0.1, 0.0], "radius": 0.08,
+                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [20, 20, 20]}}}
+    if camera_on_lit_side:
+        d["sensor"] = _sensor((-0.1, 0.2, 0.45), (-0.9, -0.3, -0.4), 75, size)
+    else:
+        d["sensor"] = _sensor((0.95, 0.2, 0.45), (0.1, -0.3, -0.4), 75, size)
+    return d
+
+
+def checker_texture(n=8, dark=0.1, light=0.8, res=64):
+    """A bitmap checkerboard (n×n squares) as a Mitsuba bitmap texture."""
+    u = (np.arange(res) * n // res) % 2
+    board = (u[:, None] ^ u[None, :]).astype(np.float32)
+    rgb = np.repeat((dark + (light - dark) * board)[..., None], 3, axis=2)
+    return {"type": "bitmap", "bitmap": mi.Bitmap(rgb), "filter_type": "nearest", "raw": True}
