@@ -45,7 +45,7 @@ def test_image_matches_reference(name, method):
 @pytest.mark.parametrize("param,coarse,fine", [
     ("global_photons", 20_000, 400_000),
     ("gather_rays", 32, 1024),
-    ("max_error", 1.5, 0.3),
+    ("max_error", 1.0, 0.1),
 ])
 def test_error_falls_as_quality_grows(param, coarse, fine):
     # The same render seed gives both images the same camera samples (the same

@@ -53,3 +53,13 @@ def rng(size: int, seed: int, stream: int = 0) -> mi.PCG32:
     sequence = (int(stream) * _GOLDEN + 0xDA3E39CB94B95BDB) % (1 << 64)
     return mi.PCG32(size=size, initstate=dr.opaque(mi.UInt64, state),
                     initseq=dr.opaque(mi.UInt64, sequence))
+
+
+#: Relative part of a ray offset: ~30 float ulps of the point's largest coordinate.
+RAY_OFFSET_RELATIVE = 2e-6
+
+
+def surface_offset(p: mi.Point3f, offset: float) -> mi.Float:
+    """How far to push a ray origin at ``p`` off its surface: ``offset`` (a world-space
+    length) plus enough to clear float rounding at ``p``'s distance from the origin."""
+    return opaque_float(offset) + dr.max(dr.abs(mi.Vector3f(p))) * RAY_OFFSET_RELATIVE

@@ -23,7 +23,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .gather import GatherSource, stratified_directions, trace_gather_rays
-from ._jit import concat, opaque_float, opaque_u32, rng as make_rng
+from ._jit import concat, opaque_float, opaque_u32, rng as make_rng, surface_offset
 from .hashgrid import BallGrid, PointGrid
 
 # --- Internal tuning constants -------------------------------------------------------
@@ -240,7 +240,8 @@ def _stratified_rays(p, n, strata, seed, stream, offset):
     rng = make_rng(count * rays, seed, stream=stream)
     local, j, k = stratified_directions(m_theta, n_phi, lane % rays, rng.next_float32(), rng.next_float32())
     on = dr.gather(mi.Vector3f, n, owner)
-    ray = mi.Ray3f(dr.gather(mi.Point3f, p, owner) + on * opaque_float(offset), _frame(on).to_world(local))
+    origin = dr.gather(mi.Point3f, p, owner)
+    ray = mi.Ray3f(origin + on * surface_offset(origin, offset), _frame(on).to_world(local))
     return ray, owner, local, j, k, rng
 
 

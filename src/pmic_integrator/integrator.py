@@ -13,14 +13,15 @@ import mitsuba as mi
 import numpy as np
 
 from . import cache as cache_mod
-from ._jit import concat, every_nth, opaque_float, rng as make_rng
+from ._jit import concat, every_nth, opaque_float, rng as make_rng, surface_offset
 from .cache import CacheRecords, RecordIndex
 from mitsuba.ad.integrators.common import mis_weight
 
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
 from .gather import GatherSource, trace_gather_rays
-from .hashgrid import BallGrid, PointGrid
-from .irradiance import estimate_irradiance, lookup_radius, precompute_irradiance
+from .hashgrid import BallGrid, PointGrid, PointGridPyramid
+from .irradiance import (adapted_lookup_radius, estimate_irradiance, lookup_radius,
+                         precompute_irradiance)
 from .photons import CAUSTIC, GLOBAL, PhotonMap, trace_photons
 from .settings import METHODS, Settings, check_against_scene  # noqa: F401 (METHODS re-exported)
 
@@ -44,8 +45,15 @@ VIEW_PROBE_STRIDE = 16
 VIEW_CLAMP_PASSES = 4
 #: Candidates walked first, evenly spread, before the ones they leave uncovered.
 PLACEMENT_SUBSET = 16384
-#: Ray origins are pushed off the surface by this fraction of the scene diagonal.
+#: Ray origins are pushed off the surface by this fraction of the scene's length scale
+#: (see ``_length_scale``), plus RAY_OFFSET_RELATIVE of the point's largest coordinate
+#: (float precision far from the origin).
 RAY_OFFSET_DIAGONAL = 1e-5
+#: The length scale is the diagonal, but at most this many global lookup radii: a
+#: 2·10⁶-unit ground plane under a 1-unit box must not push rays 28 units off the box,
+#: nor let records grow to 10⁵ units. Photons tell where the light, and so the
+#: detail, is.
+LENGTH_SCALE_LOOKUPS = 100.0
 #: Photons per caustic estimate relative to ``lookup_size``: caustics are sharper.
 CAUSTIC_LOOKUP_FRACTION = 0.5
 #: Default emitted-path bound per map, as a multiple of the requested photon count.
@@ -99,8 +107,8 @@ class PreparedScene:
     info: SceneInfo
     global_map: PhotonMap
     caustic_map: PhotonMap
-    global_grid: PointGrid | None
-    caustic_grid: PointGrid | None
+    global_grid: PointGridPyramid | None
+    caustic_grid: PointGridPyramid | None
     global_radius: float  #: world-space radius of global-map estimates
     caustic_radius: float  #: world-space radius of caustic-map estimates
     index: RecordIndex | None  #: the irradiance cache (None: not used)
@@ -248,11 +256,17 @@ class PMICIntegrator(mi.SamplingIntegrator):
         with self._render_lock:
             if isinstance(sensor, int):
                 sensor = scene.sensors()[sensor]
-            self._prepare_scene(scene)
-            # Scene-level figures (kept while the cache is reused) plus this render's own.
-            self.stats = self._prepared.stats
-            self.stats["cache_builds"] = self._cache_builds
-            self._prepare_view(scene, sensor)
+            try:
+                self._prepare_scene(scene)
+                # Scene-level figures (kept while the cache is reused) plus this render's.
+                self.stats = self._prepared.stats
+                self.stats["cache_builds"] = self._cache_builds
+                self._prepare_view(scene, sensor)
+            except BaseException:
+                # Nothing half-built survives a failure (or a Ctrl-C): the next render
+                # starts again from the photons.
+                self._prepared = None
+                raise
             self._fallback_counter = dr.zeros(mi.UInt32, 1)
             start = time.perf_counter()
             self._thread.inside = True
@@ -295,7 +309,6 @@ class PMICIntegrator(mi.SamplingIntegrator):
         check_against_scene(self.settings, info.surface_area, info.diagonal)
         skipped = []
         stats = {}
-        offset = RAY_OFFSET_DIAGONAL * info.diagonal
 
         # What this scene needs (each skip is logged and reported in stats).
         direct_only = self.settings.max_depth != -1 and self.settings.max_depth <= 2
@@ -345,19 +358,23 @@ class PMICIntegrator(mi.SamplingIntegrator):
         # Stage 2: hash grids and irradiance precomputed at the global photons.
         t0 = time.perf_counter()
         gather_source = None
-        global_radius = self.settings.lookup_radius or lookup_radius(info.surface_area, global_map.count,
-                                                            self.settings.lookup_size)
-        caustic_radius = lookup_radius(info.surface_area, caustic_map.count,
-                                       max(1, int(self.settings.lookup_size * CAUSTIC_LOOKUP_FRACTION)))
-        global_map, global_grid = _sorted_map(global_map, global_radius)
-        caustic_map, caustic_grid = _sorted_map(caustic_map, caustic_radius)
+        global_radius = self.settings.lookup_radius or adapted_lookup_radius(
+            global_map.position, lookup_radius(info.surface_area, global_map.count,
+                                               self.settings.lookup_size), self.settings.lookup_size)
+        caustic_size = max(1, int(self.settings.lookup_size * CAUSTIC_LOOKUP_FRACTION))
+        caustic_radius = adapted_lookup_radius(
+            caustic_map.position, lookup_radius(info.surface_area, caustic_map.count, caustic_size),
+            caustic_size)
+        global_map, global_grid = _sorted_map(global_map, global_radius, self.settings.lookup_size)
+        caustic_map, caustic_grid = _sorted_map(caustic_map, caustic_radius, caustic_size)
         if global_map.count and self.settings.method == "photon_map" and not self.settings.final_gather:
             skipped.append("precomputed irradiance: photon_map without final gathering never reads it")
         elif global_map.count:
             depth_limit = None if self.settings.max_depth == -1 else self.settings.max_depth - 2
             # Gather rays read this copy (half the photons, see precompute_irradiance).
             gather_source = GatherSource.build(
-                precompute_irradiance(global_map, global_radius, depth_limit), global_radius)
+                precompute_irradiance(global_map, global_radius, self.settings.lookup_size,
+                                      depth_limit), global_radius)
         dr.sync_thread()
         stats["time_precompute"] = time.perf_counter() - t0
         stats["lookup_radius"] = global_radius
@@ -372,6 +389,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         self._prepared = PreparedScene(key, info, global_map, caustic_map, global_grid, caustic_grid,
                                        global_radius, caustic_radius, None, skipped, stats,
                                        gather_source)
+        offset = RAY_OFFSET_DIAGONAL * self._length_scale()
         if self.settings.method == "pmic" and global_map.count:
             candidates_p, candidates_n = global_map.position, global_map.normal
             index, rounds = self._build_records(scene, candidates_p, candidates_n, None, offset)
@@ -387,6 +405,14 @@ class PMICIntegrator(mi.SamplingIntegrator):
         for reason in skipped:
             log.info("pmic: skipped %s", reason)
 
+    def _length_scale(self) -> float:
+        """World-space scale for offsets and the largest record: the diagonal, but no
+        more than LENGTH_SCALE_LOOKUPS global lookup radii."""
+        prepared = self._prepared
+        if prepared.global_radius > 0:
+            return min(prepared.info.diagonal, LENGTH_SCALE_LOOKUPS * prepared.global_radius)
+        return prepared.info.diagonal
+
     def _max_paths(self, photons: int) -> int:
         if self.settings.max_photon_paths:
             return self.settings.max_photon_paths
@@ -394,7 +420,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
     def _radius_bounds(self):
         prepared = self._prepared
-        r_max = R_MAX_DIAGONAL * prepared.info.diagonal
+        r_max = R_MAX_DIAGONAL * self._length_scale()
         r_min = min(MIN_REACH_LOOKUPS * prepared.global_radius / self.settings.max_error, r_max) \
             if prepared.global_radius > 0 else 1e-3 * r_max
         return r_min, r_max
@@ -481,7 +507,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         if self.settings.method == "photon_map" or prepared.global_map.count == 0:
             return
         t0 = time.perf_counter()
-        offset = RAY_OFFSET_DIAGONAL * prepared.info.diagonal
+        offset = RAY_OFFSET_DIAGONAL * self._length_scale()
         cam_p, cam_n = self._camera_points(scene, sensor)
         if self.settings.method == "irradiance_cache":
             # Classic cache: records placed from this camera only, rebuilt per view.
@@ -759,7 +785,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
     def _final_gather_ray(self, scene, sampler, si, n, active):
         """One cosine-distributed gather ray reading precomputed irradiance: E ≈ π L."""
         local = mi.warp.square_to_cosine_hemisphere(sampler.next_2d())
-        ray = mi.Ray3f(si.p + n * opaque_float(RAY_OFFSET_DIAGONAL * self._prepared.info.diagonal),
+        ray = mi.Ray3f(si.p + n * surface_offset(si.p, RAY_OFFSET_DIAGONAL * self._length_scale()),
                        mi.Frame3f(n).to_world(local))
         rng = make_rng(dr.width(si.p), self.settings.seed, stream=7)
         radiance, _ = trace_gather_rays(scene, self._source(), ray, rng, active)
@@ -803,14 +829,13 @@ def _inside_any(grid: BallGrid, points: mi.Point3f) -> mi.Bool:
                               label="inside_any_ball")
 
 
-def _sorted_map(photons: PhotonMap, radius: float):
-    """Build the map's hash grid and reorder the photons into grid order, so that a
+def _sorted_map(photons: PhotonMap, radius: float, per_estimate: float):
+    """Build the map's grid pyramid and reorder the photons into its order, so that a
     lookup reads neighbouring memory instead of jumping across the whole map."""
     if photons.count == 0:
         return photons, None
-    grid = PointGrid.build(photons.position, radius)
-    photons = photons.select(grid.order)
-    return photons, grid.sorted_in_place()
+    grid, order = PointGridPyramid.build(photons.position, radius, per_estimate)
+    return photons.select(order), grid
 
 
 def _progress(kind, stored, target, emitted):

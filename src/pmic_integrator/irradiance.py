@@ -13,8 +13,9 @@ import math
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
-from .hashgrid import PointGrid
+from .hashgrid import PointGrid, PointGridPyramid
 from .photons import PhotonMap
 
 # --- Internal tuning constants -------------------------------------------------------
@@ -37,6 +38,51 @@ def lookup_radius(surface_area: float, photons: int, per_estimate: int) -> float
     return math.sqrt(per_estimate * surface_area / (math.pi * photons))
 
 
+#: Mean area of a surface inside a grid cell, in cell faces: 1 for a wall aligned with
+#: the grid, 3/2 averaged over orientations (Cauchy's mean cross-section of a cube).
+CELL_SURFACE_FACES = 1.25
+#: The radius is set so that this quantile of the photons (by their neighbourhoods'
+#: density, sparsest first) has ``per_estimate`` photons per disc: below the median,
+#: so that dimly lit surfaces are not starved where most photons cluster (a lamp shade).
+DENSITY_QUANTILE = 0.3
+#: Photons sampled to find that quantile.
+DENSITY_SAMPLE = 1 << 16
+
+
+def adapted_lookup_radius(positions: mi.Point3f, radius: float, per_estimate: int,
+                          iterations: int = 8) -> float:
+    """Shrink an area-based ``radius`` to where photons actually are.
+
+    The area-based radius assumes photons spread over every surface. They do not: most
+    of a huge ground plane, the outside of a room and the back of every wall get none,
+    and with the whole area counted, each estimate scanned nearly every photon (a
+    2·10⁶-unit ground under a 1-unit box hung). Photons are counted per grid cell of
+    the current radius; a photon's cell count c gives ~π c / CELL_SURFACE_FACES photons
+    per disc, and the radius is scaled until the :data:`DENSITY_QUANTILE` photon has
+    ``per_estimate``. Never grows the radius.
+    """
+    count = dr.width(positions.x)
+    if count == 0 or radius <= 0:
+        return radius
+    from .hashgrid import _next_pow2, cell_of, hash_cell  # noqa: PLC0415 (a leaf helper)
+
+    origin = mi.Point3f(dr.min(positions.x), dr.min(positions.y), dr.min(positions.z))
+    table = _next_pow2(2 * count)
+    stride = max(1, count // DENSITY_SAMPLE)
+    sample = dr.arange(mi.UInt32, -(-count // stride)) * stride
+    for _ in range(iterations):
+        inv = dr.opaque(mi.Float, 1.0 / radius)
+        bucket = hash_cell(cell_of(positions, origin, inv), table - 1)
+        counts = dr.zeros(mi.UInt32, table)
+        dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), bucket)
+        occupancy = np.array(dr.gather(mi.UInt32, counts, dr.gather(mi.UInt32, bucket, sample)))
+        per_disc = math.pi * float(np.quantile(occupancy, DENSITY_QUANTILE)) / CELL_SURFACE_FACES
+        if per_disc <= 1.25 * per_estimate:
+            break
+        radius *= max(math.sqrt(per_estimate / per_disc), 1e-3)
+    return radius
+
+
 def _compatible(photons: PhotonMap, index, offset, valid, query_n, radius):
     """Mask of candidate photons that lie on the query's surface, on its side
     (``offset``: photon position − query position)."""
@@ -46,11 +92,13 @@ def _compatible(photons: PhotonMap, index, offset, valid, query_n, radius):
     return valid & (dr.dot(n, query_n) > NORMAL_COSINE)
 
 
-def estimate_irradiance(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
-                        query_n: mi.Vector3f, radius, max_depth=None, min_depth=None,
+def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
+                        query_n: mi.Vector3f, radius=None, max_depth=None, min_depth=None,
                         skip_specular_paths: bool = False, active=True) -> mi.Color3f:
     """Irradiance at ``query_p`` from the photons within ``radius``.
 
+    ``grid`` is a :class:`PointGridPyramid` (the radius then adapts to the local photon
+    density, and ``radius`` is ignored) or a :class:`PointGrid` (fixed ``radius``).
     Uses the normalised Simpson kernel K(d) = 3/(π r²) (1 - d²/r²)², which weights
     close photons more and goes smoothly to zero at the radius (fewer blotches than a
     box kernel). ``query_n`` must face the side from which the surface is seen.
@@ -59,10 +107,15 @@ def estimate_irradiance(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f
     ``skip_specular_paths`` excludes photons of L S* D paths (what a caustic map and
     direct lighting already count).
     """
-    radius = dr.opaque(mi.Float, radius) if isinstance(radius, (int, float)) else mi.Float(radius)
-    inv_r2 = dr.rcp(dr.maximum(radius * radius, 1e-30))
     query_n = mi.Vector3f(query_n)
     lanes = dr.width(query_p)
+    active = mi.Bool(active)
+    pyramid = isinstance(grid, PointGridPyramid)
+    if pyramid:
+        level, radius = grid.level_of(query_p, active)
+    else:
+        radius = dr.opaque(mi.Float, radius) if isinstance(radius, (int, float)) else mi.Float(radius)
+    inv_r2 = dr.rcp(dr.maximum(radius * radius, 1e-30))
 
     def visit(total, index, dist2, valid, offset):
         ok = _compatible(photons, index, offset, valid, query_n, radius)
@@ -78,12 +131,17 @@ def estimate_irradiance(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f
         power = dr.gather(mi.Color3f, photons.power, index, ok)
         return dr.fma(power, dr.square(1.0 - dist2 * inv_r2), total)
 
-    total = grid.for_each_neighbor(query_p, radius, dr.zeros(mi.Color3f, lanes), visit,
-                                   active=active, label="photon_density_estimate", with_offset=True)
+    zero = dr.zeros(mi.Color3f, lanes)
+    if pyramid:
+        total = grid.for_each_neighbor(query_p, level, zero, visit, active=active,
+                                       label="photon_density_estimate", with_offset=True)
+    else:
+        total = grid.for_each_neighbor(query_p, radius, zero, visit, active=active,
+                                       label="photon_density_estimate", with_offset=True)
     return total * (3.0 * dr.inv_pi) * inv_r2
 
 
-def precompute_irradiance(photons: PhotonMap, radius: float,
+def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float,
                           max_depth: int | None = None) -> PhotonMap:
     """Irradiance at photons (stage 2 of the paper), free of the self-term bias.
 
@@ -99,18 +157,19 @@ def precompute_irradiance(photons: PhotonMap, radius: float,
     large Voronoi cells, i.e. with few neighbours: 1-20 % dark. With two independent
     halves neither bias exists: which photon of A is nearest says nothing about B.
 
-    ``max_depth`` limits the photons counted (for camera paths of bounded length).
+    ``radius`` is the base radius of the estimates, which shrinks where photons are
+    dense (:class:`PointGridPyramid`) so that a disc of B holds ~``per_estimate`` / 2
+    photons. ``max_depth`` limits the photons counted (camera paths of bounded length).
     """
     if photons.count == 0:
         return PhotonMap.empty()
     half_a, half_b = photons.split_by_path()
     if half_a.count == 0 or half_b.count == 0 or half_b.paths_emitted == 0:
         return PhotonMap.empty()
-    grid_b = PointGrid.build(half_b.position, radius)
-    half_b = half_b.select(grid_b.order)
-    grid_b = grid_b.sorted_in_place()
+    grid_b, order = PointGridPyramid.build(half_b.position, radius, 0.5 * per_estimate)
+    half_b = half_b.select(order)
     scale = photons.paths_emitted / half_b.paths_emitted
-    irradiance = estimate_irradiance(half_b, grid_b, half_a.position, half_a.normal, radius,
+    irradiance = estimate_irradiance(half_b, grid_b, half_a.position, half_a.normal,
                                      max_depth=max_depth) * scale
     half_a.irradiance = dr.select(dr.all(dr.isfinite(irradiance)), irradiance, 0.0)
     half_a.paths_emitted = photons.paths_emitted
