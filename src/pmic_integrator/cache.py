@@ -91,8 +91,9 @@ class CacheRecords:
         return 4 * (3 + 3 + 1 + 3 + 18) * self.count
 
 
-def block_sum(values, block: int):
-    """Sums of consecutive blocks of ``block`` entries, always added in the same order.
+def block_sum(values, block: int, op: str = "sum"):
+    """Sums (or minima, ``op="min"``) of consecutive blocks of ``block`` entries, always
+    taken in the same order.
 
     (``dr.block_sum`` may accumulate in a thread-dependent order; a record must come
     out bit-identical for the same seed.) ``values`` is a Float or a 3-vector array.
@@ -105,10 +106,12 @@ def block_sum(values, block: int):
     first = dr.arange(mi.UInt32, count) * limit
 
     def body(i, total):
-        return i + 1, total + dr.gather(dtype, values, first + i)
+        value = dr.gather(dtype, values, first + i)
+        return i + 1, (total + value) if op == "sum" else dr.minimum(total, value)
 
-    _, total = dr.while_loop((dr.zeros(mi.UInt32, count), dr.zeros(dtype, count)),
-                             lambda i, total: i < limit, body, label="block_sum")
+    start = dr.zeros(dtype, count) if op == "sum" else dr.full(dtype, dr.inf, count)
+    _, total = dr.while_loop((dr.zeros(mi.UInt32, count), start),
+                             lambda i, total: i < limit, body, label=f"block_{op}")
     return total
 
 
@@ -254,17 +257,19 @@ def _gather_rays(scene, source, p, n, strata, seed, offset):
 
 
 def harmonic_mean_distance(scene, p: mi.Point3f, n: mi.Vector3f, strata, seed: int,
-                           offset: float) -> mi.Float:
+                           offset: float):
     """R: the harmonic mean of the hit distances of M·N stratified rays (misses count
-    as infinitely far). Only distances are needed, so no radiance is looked up."""
+    as infinitely far), and the nearest hit. Returns ``(R, nearest)``. Only distances
+    are needed, so no radiance is looked up."""
     if dr.width(p.x) == 0:
-        return mi.Float()
+        return mi.Float(), mi.Float()
     rays = strata[0] * strata[1]
     ray = _stratified_rays(p, n, strata, seed, 2, offset)[0]
     si = scene.ray_intersect_preliminary(ray, mi.Bool(True))
     inv = dr.select(si.is_valid(), dr.rcp(dr.maximum(si.t, 1e-30)), 0.0)
     total = block_sum(inv, rays)
-    return rays / dr.maximum(total, 1e-30)
+    nearest = block_sum(dr.select(si.is_valid(), si.t, dr.inf), rays, op="min")
+    return rays / dr.maximum(total, 1e-30), nearest
 
 
 def clamp_to_neighbours(p: mi.Point3f, n: mi.Vector3f, radius: mi.Float, step: float,

@@ -431,8 +431,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
     def _pilot_radius(self, scene, p, n, seed_offset: int, offset):
         """R from a cheap pilot gather, clamped to the world-space bounds."""
         r_min, r_max = self._radius_bounds()
-        pilot = cache_mod.harmonic_mean_distance(scene, p, n, cache_mod.PILOT_STRATA,
-                                                 self.settings.seed + seed_offset, offset)
+        pilot, _ = cache_mod.harmonic_mean_distance(scene, p, n, cache_mod.PILOT_STRATA,
+                                                    self.settings.seed + seed_offset, offset)
         return dr.clip(pilot, opaque_float(r_min), opaque_float(r_max))
 
     def _place(self, scene, cand_p, cand_n, existing: RecordIndex | None, offset):
