@@ -72,7 +72,8 @@ def thin_wall_room(camera_on_lit_side=False, thickness=0.002, size=(32, 24)):
     d["shell_front"] = _box_part((0, 0, 0.5 + t), (1 + 2 * t, 0.5 + 2 * t, t), white)
     d["shell_left"] = _box_part((-1 - t, 0, 0), (t, 0.5 + 2 * t, 0.5 + 2 * t), white)
     d["shell_right"] = _box_part((1 + t, 0, 0), (t, 0.5 + 2 * t, 0.5 + 2 * t), white)
-    d["wall"] = _box_part((0, 0, 0), (thickness / 2, 0.5, 0.5), white)
+    # The wall reaches into the shell: coincident faces would leave float cracks.
+    d["wall"] = _box_part((0, 0, 0), (thickness / 2, 0.5 + t, 0.5 + t), white)
     d["light"] = {"type": "sphere", "center": [-0.5, 0.1, 0.0], "radius": 0.08,
                   "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [20, 20, 20]}}}
     if camera_on_lit_side:

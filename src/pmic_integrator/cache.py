@@ -57,6 +57,7 @@ class CacheRecords:
     irradiance: mi.Color3f  #: E at the record
     grad_t: tuple  #: translational gradient, world space: (∇E_r, ∇E_g, ∇E_b) Vector3f
     grad_r: tuple  #: rotational gradient, world space: (∇E_r, ∇E_g, ∇E_b) Vector3f
+    obstacle: mi.Float = None  #: nearest hit of the record's gather (None: not known)
 
     @property
     def count(self) -> int:
@@ -79,16 +80,21 @@ class CacheRecords:
             return other
         if other.count == 0:
             return self
+        obstacle = None
+        if self.obstacle is not None or other.obstacle is not None:
+            far = lambda r: r.obstacle if r.obstacle is not None else dr.full(mi.Float, dr.inf, r.count)  # noqa: E731
+            obstacle = concat([far(self), far(other)], mi.Float)
         return CacheRecords(
             concat([self.position, other.position], mi.Point3f),
             concat([self.normal, other.normal], mi.Vector3f),
             concat([self.radius, other.radius], mi.Float),
             concat([self.irradiance, other.irradiance], mi.Color3f),
             tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_t, other.grad_t)),
-            tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_r, other.grad_r)))
+            tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_r, other.grad_r)),
+            obstacle)
 
     def nbytes(self) -> int:
-        return 4 * (3 + 3 + 1 + 3 + 18) * self.count
+        return 4 * (3 + 3 + 1 + 3 + 18 + (self.obstacle is not None)) * self.count
 
 
 def block_sum(values, block: int, op: str = "sum"):
@@ -140,15 +146,20 @@ def interpolation_weight(err: mi.Float, max_error) -> mi.Float:
 # Placement (Fig. 2 of the paper, in data-parallel rounds)
 # --------------------------------------------------------------------------------------
 def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_n,
-                max_error, active, earlier_than=None, priority=None):
+                max_error, active, earlier_than=None, priority=None, visibility=None):
     """Mask of queries covered by some record in ``grid`` (optionally: only by records
-    whose ``priority`` is smaller than the query's ``earlier_than``)."""
+    whose ``priority`` is smaller than the query's ``earlier_than``; with
+    ``visibility`` = (scene, obstacle, lift), only by records not hidden from it)."""
 
     def visit(found, index, valid):
         rp = dr.gather(mi.Point3f, records_p, index, valid)
         rn = dr.gather(mi.Vector3f, records_n, index, valid)
         rr = dr.gather(mi.Float, records_r, index, valid)
         ok = valid & covers(query_p, query_n, rp, rn, rr, max_error)
+        if visibility is not None:
+            scene, obstacle, lift = visibility
+            ob = dr.gather(mi.Float, obstacle, index, ok)
+            ok &= ~hidden_from(scene, query_p, query_n, rp, rn, rr * max_error, ob, lift, ok)
         if earlier_than is not None:
             ok &= dr.gather(mi.UInt32, priority, index, ok) < earlier_than
         return found | ok
@@ -156,6 +167,26 @@ def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_
     lanes = dr.width(query_p)
     return grid.for_each_ball(query_p, dr.zeros(mi.Bool, lanes), visit, active=active,
                               finished=lambda found: found, label="cache_coverage")
+
+
+def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active) -> mi.Bool:
+    """Is record i (reach a·R, nearest gather hit ``obstacle``) blocked from (x, n)?
+
+    Only records whose reach passes the nearest surface their gather met are tested
+    (one shadow ray between the two points, lifted ``lift`` off their surfaces): the
+    others cannot reach around anything. A floor split by a thin wall has the same
+    plane and normal on both sides; without this, the lit side's records lit a strip
+    of the dark side.
+    """
+    if scene is None or obstacle is None:
+        return dr.zeros(mi.Bool, dr.width(x))
+    test = active & (rec_reach > obstacle)
+    origin = x + n * lift
+    to_record = rec_p + rec_n * lift - origin
+    length = dr.norm(to_record)
+    shadow = mi.Ray3f(origin, to_record / dr.maximum(length, 1e-30))
+    shadow.maxt = length * 0.999
+    return scene.ray_test(shadow, test & (length > 0))
 
 
 def placement_priority(index: mi.UInt32) -> mi.UInt32:
@@ -307,21 +338,38 @@ def clamp_to_neighbours(p: mi.Point3f, n: mi.Vector3f, radius: mi.Float, step: f
 
 
 def clamp_records_to_points(index: "RecordIndex", p: mi.Point3f, n: mi.Vector3f,
-                            radius: mi.Float):
+                            radius: mi.Float, scene: mi.Scene | None = None, lift: float = 0.0):
     """New record radii with Rᵢ ≤ R(x) + |x − xᵢ| for every point x (radius R(x)) that
-    record i covers; None if no record changes."""
+    record i covers; None if no record changes.
+
+    With ``scene``, a record that covers x but cannot see it (a shadow ray between the
+    two, both lifted ``lift`` off their surfaces, is blocked) shrinks until it no longer
+    covers x: on a floor split by a thin wall, the lit side's records must not reach
+    the dark side, which the same plane and normal tests cannot tell apart.
+    """
     records = index.records
     if records.count == 0 or dr.width(radius) == 0:
         return None
     bound_r = dr.zeros(mi.Float, records.count) + records.radius
     dr.eval(bound_r)
+    lift = opaque_float(lift)
 
     def visit(state, i, valid):
         rp = dr.gather(mi.Point3f, records.position, i, valid)
         rn = dr.gather(mi.Vector3f, records.normal, i, valid)
         rr = dr.gather(mi.Float, records.radius, i, valid)
         ok = valid & covers(p, n, rp, rn, rr, index.max_error)
-        bound = radius + dr.norm(p - rp)
+        distance = dr.norm(p - rp)
+        bound = radius + distance
+        if scene is not None:
+            origin = p + n * lift
+            to_record = rp + rn * lift - origin
+            length = dr.norm(to_record)
+            shadow = mi.Ray3f(origin, to_record / dr.maximum(length, 1e-30))
+            shadow.maxt = length * 0.999
+            hidden = scene.ray_test(shadow, ok & (length > 0))
+            # Just outside the reach: ε = |x − xᵢ| / Rᵢ ≥ a.
+            bound = dr.select(hidden, distance * (0.99 / index.max_error), bound)
         dr.scatter_reduce(dr.ReduceOp.Min, bound_r, bound, i, ok & (bound < rr))
         return state
 
@@ -401,9 +449,10 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
         limit_r = GRADIENT_LIMIT * irradiance[c]
         norm_r = dr.norm(grad_r[c])
         grad_r[c] = grad_r[c] * dr.minimum(1.0, limit_r / dr.maximum(norm_r, 1e-30))
+    nearest = block_sum(distance, rays, op="min")
     records = CacheRecords(mi.Point3f(p), mi.Vector3f(n), mi.Float(radius), mi.Color3f(irradiance),
-                           tuple(grad_t), tuple(grad_r))
-    dr.eval(records.irradiance, *records.grad_t, *records.grad_r)
+                           tuple(grad_t), tuple(grad_r), nearest)
+    dr.eval(records.irradiance, *records.grad_t, *records.grad_r, records.obstacle)
     return records
 
 
@@ -418,24 +467,33 @@ class RecordIndex:
     max_error: float
     grid: BallGrid  #: balls of radius a·R
     backup_grid: BallGrid  #: balls of radius BACKUP_REACH·a·R, for gaps
+    scene: object = None  #: for visibility tests of records reaching past a surface
+    lift: float = 0.0  #: how far those tests start off the surfaces
 
     @staticmethod
-    def build(records: CacheRecords, max_error: float) -> "RecordIndex":
+    def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0) -> "RecordIndex":
         def grid(reach):
             cell = CELL_PER_REACH * float(dr.mean(reach)[0]) if records.count else None
             return BallGrid.build(records.position, reach, cell_size=cell)
 
         reach = records.radius * max_error
-        return RecordIndex(records, max_error, grid(reach), grid(reach * BACKUP_REACH))
+        return RecordIndex(records, max_error, grid(reach), grid(reach * BACKUP_REACH), scene, lift)
+
+    def _visibility(self):
+        if self.scene is None or self.records.obstacle is None:
+            return None
+        return self.scene, self.records.obstacle, opaque_float(self.lift)
 
     def covered(self, x, n, active=True) -> mi.Bool:
-        """Is (x, n) within the reach a·R of some record (Ward's test)?"""
+        """Is (x, n) within the reach a·R of some record (Ward's test) that sees it?"""
         r = self.records
-        return _covered_by(r.position, r.normal, r.radius, self.grid, x, n, self.max_error, active)
+        return _covered_by(r.position, r.normal, r.radius, self.grid, x, n, self.max_error, active,
+                           visibility=self._visibility())
 
     def _weighted_sum(self, grid: BallGrid, max_error: float, x, n, active, label):
         r = self.records
         lanes = dr.width(x)
+        visibility = self._visibility()
 
         def visit(state, index, valid):
             total, weight_sum = state
@@ -445,6 +503,10 @@ class RecordIndex:
             ok = valid & covers(x, n, rp, rn, rr, max_error)
             w = interpolation_weight(ward_error(x, n, rp, rn, rr), max_error)
             ok &= w > 0
+            if visibility is not None:
+                scene, obstacle, lift = visibility
+                ob = dr.gather(mi.Float, obstacle, index, ok)
+                ok &= ~hidden_from(scene, x, n, rp, rn, rr * max_error, ob, lift, ok)
             e = dr.gather(mi.Color3f, r.irradiance, index, ok)
             dx = x - rp
             rot = dr.cross(rn, n)

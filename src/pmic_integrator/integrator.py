@@ -18,7 +18,7 @@ from .cache import CacheRecords, RecordIndex
 from mitsuba.ad.integrators.common import mis_weight
 
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
-from .gather import GatherSource, trace_gather_rays
+from .gather import VISIBILITY_LIFT, GatherSource, trace_gather_rays
 from .hashgrid import BallGrid, PointGrid, PointGridPyramid
 from .irradiance import (adapted_lookup_radius, estimate_irradiance, lookup_radius,
                          precompute_irradiance)
@@ -306,6 +306,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         if self._prepared is not None and self._prepared.key == key:
             return
         info = SceneInfo.of(scene)
+        self._scene_ref = scene
         check_against_scene(self.settings, info.surface_area, info.diagonal)
         skipped = []
         stats = {}
@@ -405,6 +406,12 @@ class PMICIntegrator(mi.SamplingIntegrator):
         for reason in skipped:
             log.info("pmic: skipped %s", reason)
 
+    def _index(self, records: CacheRecords) -> RecordIndex:
+        """The lookup structure of ``records``, with visibility tests for records that
+        reach past a surface."""
+        return RecordIndex.build(records, self.settings.max_error, self._scene_ref,
+                                 VISIBILITY_LIFT * self._prepared.global_radius)
+
     def _length_scale(self) -> float:
         """World-space scale for offsets and the largest record: the diagonal, but no
         more than LENGTH_SCALE_LOOKUPS global lookup radii."""
@@ -469,11 +476,11 @@ class PMICIntegrator(mi.SamplingIntegrator):
             rounds += k
             new_p.append(p), new_n.append(n), new_r.append(r)
             placed = placed.extend(CacheRecords.geometry_only(p, n, r))
-            uncovered = dr.compress(~RecordIndex.build(placed, self.settings.max_error).covered(cand_p, cand_n))
+            uncovered = dr.compress(~self._index(placed).covered(cand_p, cand_n))
             remaining_p = dr.gather(mi.Point3f, cand_p, uncovered)
             remaining_n = dr.gather(mi.Vector3f, cand_n, uncovered)
         if dr.width(remaining_p.x):
-            prior = RecordIndex.build(placed, self.settings.max_error) if placed.count else None
+            prior = self._index(placed) if placed.count else None
             (p, n, r), k = self._place(scene, remaining_p, remaining_n, prior, offset)
             rounds += k
             new_p.append(p), new_n.append(n), new_r.append(r)
@@ -484,7 +491,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                             self.settings.seed + 31 + (existing.records.count if existing else 0),
                                             offset)
         all_records = existing.records.extend(records) if existing is not None else records
-        return RecordIndex.build(all_records, self.settings.max_error), rounds
+        return self._index(all_records), rounds
 
     # ----------------------------------------------------------------------------------
     # Per-view preparation: records where the camera sees what no photon reached
@@ -549,7 +556,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         # Records made for photons that shrinking uncovered must obey the bound too;
         # a record always covers its own photon, so this settles in a few passes.
         for _ in range(VIEW_CLAMP_PASSES):
-            shrunk = cache_mod.clamp_records_to_points(index, probe_p, probe_n, probe_r)
+            shrunk = cache_mod.clamp_records_to_points(
+                index, probe_p, probe_n, probe_r, scene, VISIBILITY_LIFT * prepared.global_radius)
             if shrunk is None:
                 break
             records = index.records
@@ -559,7 +567,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                        dr.gather(mi.Float, records.radius, was) * self.settings.max_error)
             near = _inside_any(old_reach, photons.position)
             records.radius = shrunk
-            index = RecordIndex.build(records, self.settings.max_error)
+            index = self._index(records)
             lost = dr.compress(near & ~index.covered(photons.position, photons.normal, near))
             if dr.width(lost):
                 index, _ = self._build_records(scene, dr.gather(mi.Point3f, photons.position, lost),
