@@ -127,3 +127,38 @@ def test_ball_grid_matches_brute_force(seed):
     np.testing.assert_array_equal(np.array(count), inside.sum(1))
     np.testing.assert_array_equal(np.array(s1), (inside * np.arange(400)).sum(1))
     assert inside.sum() > 100
+
+
+def test_pyramid_finds_exactly_the_points_within_each_querys_own_radius():
+    """A dense cluster inside sparse points: queries in the cluster use finer levels
+    (smaller radii); every query must find exactly the points within its radius."""
+    from pmic_integrator.hashgrid import PointGridPyramid
+
+    rng = np.random.default_rng(3)
+    sparse = rng.uniform(-1, 1, (3000, 3)).astype(np.float32)
+    cluster = (rng.normal(0, 0.02, (6000, 3)) + 0.3).astype(np.float32)
+    points = np.concatenate([sparse, cluster])
+    queries = np.concatenate([rng.uniform(-1, 1, (200, 3)), rng.normal(0, 0.02, (200, 3)) + 0.3]).astype(np.float32)
+    pyramid, order = PointGridPyramid.build(mi.Point3f(points.T), 0.2, per_estimate=16)
+    level, radius = pyramid.level_of(mi.Point3f(queries.T))
+    level_np, radius_np = np.array(level), np.array(radius)
+    assert level_np[:200].max() <= 1 and level_np[200:].min() >= 2  # the cluster goes finer
+    sorted_points = points[np.array(order)]
+
+    def visit(state, index, dist2, valid):
+        count, s1 = state
+        return count + dr.select(valid, 1, 0), s1 + dr.select(valid, mi.UInt32(index), 0)
+
+    lanes = len(queries)
+    count, s1 = pyramid.for_each_neighbor(mi.Point3f(queries.T), level,
+                                          (dr.zeros(mi.UInt32, lanes), dr.zeros(mi.UInt32, lanes)), visit)
+    d = queries[:, None, :] - sorted_points[None, :, :]
+    dist2 = d[..., 0] * d[..., 0] + (d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2])
+    inside = dist2 < radius_np[:, None] ** 2
+    # Points right on a radius can differ by float rounding: compare away from it.
+    near_edge = np.abs(dist2 - radius_np[:, None] ** 2) < 1e-5 * radius_np[:, None] ** 2
+    ok = ~near_edge.any(1)
+    assert ok.mean() > 0.95
+    idx = np.arange(len(points), dtype=np.uint64)
+    np.testing.assert_array_equal(np.array(count)[ok], inside.sum(1)[ok])
+    np.testing.assert_array_equal(np.array(s1)[ok], ((inside * idx).sum(1) % 2**32)[ok])

@@ -311,75 +311,136 @@ class BallGrid:
 
 @dataclass
 class PointGridPyramid:
-    """Point grids with cells of r, r/2, r/4, … for density estimates whose radius
-    adapts to the local photon density.
+    """Points in grids with cells of r, r/2, r/4, r/8, all in one hash table, for
+    density estimates whose radius adapts to the local photon density.
 
     One radius for the whole map is wrong twice where photons cluster (the inside of a
     lamp shade, a caustic): each query scans thousands of candidates (30 s of 40 in a
     lamp room), and the disc blurs detail that those photons resolve. A query picks
     its level from the photon count of its level-0 cell, so that its disc holds about
-    ``per_estimate`` photons, and searches that level's grid at that level's radius.
-    Level 0 is sorted in place (the photon arrays follow its order); the finer levels
-    report level-0 indices.
+    ``per_estimate`` photons, and scans the 27 cells of that level around it. Every
+    point is entered once per level; the level is part of each entry's hash and key,
+    so one table (and one 27-cell scan per query) serves every level.
+
+    The photon arrays must be reordered by the ``order`` that :meth:`build` returns
+    (level-0 grid order): queries report indices into the reordered arrays.
     """
 
-    levels: list  #: PointGrid per level, cell size radius / 2^level
+    origin: mi.Point3f  #: lower corner shared by every level
     radius: float  #: level-0 radius (= its cell size)
     per_estimate: float  #: photons a disc should hold
+    levels: int  #: number of levels
+    table_mask: int  #: buckets minus one
+    cell_start: mi.UInt32  #: first entry of each bucket; entry table_size = entries
+    index: mi.UInt32  #: point index (in level-0 order) of each entry
+    positions: mi.Point3f  #: position of each entry's point (coherent reads)
+    keys: mi.UInt32  #: cell key of each entry's cell, with the level in bits 30-31
+    count: int  #: number of points
+    level0_start: mi.UInt32  #: level-0 point grid's bucket starts (occupancy lookups)
+    level0_mask: int
 
-    #: Levels below level 0: radius / 2^(LEVELS-1) is the smallest radius used, so
-    #: a cluster 4^(LEVELS-1) = 64× denser than the base still costs the same per query.
+    #: Levels: radius / 2^(LEVELS-1) is the smallest radius used, so a cluster
+    #: 4^(LEVELS-1) = 64× denser than the base still costs the same per query.
     LEVELS = 4
     #: A query moves one level finer only when its disc would hold more than this many
     #: times ``per_estimate`` (each level quarters the count).
     DENSE_FACTOR = 2.0
 
     @staticmethod
+    def _bucket(cell: mi.Vector3i, level, mask):
+        return (hash_cell(cell, 0xFFFFFFFF) ^ (mi.UInt32(level) * 0x9E3779B1)) & mask
+
+    @staticmethod
     def build(positions: mi.Point3f, radius: float, per_estimate: float, levels: int | None = None):
-        """Grids over ``positions``; returns ``(pyramid, order)``: reorder the photon
-        arrays by ``order`` (the level-0 grid order) before querying."""
+        """Returns ``(pyramid, order)``; reorder the point data by ``order``."""
+        levels = levels or PointGridPyramid.LEVELS
         base = PointGrid.build(positions, radius)
         order = base.order
-        base = base.sorted_in_place()
-        grids = [base]
-        if base.count:
-            for level in range(1, levels or PointGridPyramid.LEVELS):
-                grids.append(PointGrid.build(base.positions, radius / (1 << level), origin=base.origin))
-        return PointGridPyramid(grids, float(radius), float(per_estimate)), order
+        n = base.count
+        if n == 0:
+            empty = PointGridPyramid(base.origin, float(radius), float(per_estimate), levels, 0,
+                                     dr.zeros(mi.UInt32, 2), mi.UInt32(), mi.Point3f(), mi.UInt32(), 0,
+                                     base.cell_start, base.table_mask)
+            return empty, order
+        sorted_p = base.positions
+        table = _next_pow2(n * levels)
+        buckets, keys = [], []
+        for level in range(levels):
+            inv = dr.opaque(mi.Float, (1 << level) / radius)
+            cell = cell_of(sorted_p, base.origin, inv)
+            buckets.append(PointGridPyramid._bucket(cell, opaque_u32(level), opaque_u32(table - 1)))
+            keys.append(cell_key(cell) | (opaque_u32(level) << 30))
+        from ._jit import concat  # noqa: PLC0415 (leaf helper; _jit imports nothing of ours)
+
+        bucket = concat(buckets, mi.UInt32)
+        key = concat(keys, mi.UInt32)
+        cell_start, entry_order = _bucket_sort(bucket, table)
+        point = entry_order % opaque_u32(n)
+        pyramid = PointGridPyramid(base.origin, float(radius), float(per_estimate), levels,
+                                   table - 1, cell_start, point,
+                                   dr.gather(mi.Point3f, sorted_p, point),
+                                   dr.gather(mi.UInt32, key, entry_order), n,
+                                   base.cell_start, base.table_mask)
+        dr.eval(pyramid.index, pyramid.positions, pyramid.keys)
+        return pyramid, order
 
     def nbytes(self) -> int:
-        return sum(g.nbytes() for g in self.levels)
-
-    @property
-    def count(self) -> int:
-        return self.levels[0].count
+        return (12 + 4 + 4) * dr.width(self.index) + 4 * (self.table_mask + 2) + 4 * (self.level0_mask + 2)
 
     def level_of(self, query: mi.Point3f, active=True):
         """The level each query should search (see the class docs) and its radius."""
-        base = self.levels[0]
         query = mi.Point3f(query)
         lanes = dr.width(query.x)
-        if base.count == 0 or len(self.levels) == 1:
+        if self.count == 0 or self.levels == 1:
             return dr.zeros(mi.UInt32, lanes), dr.full(mi.Float, self.radius, lanes)
-        inv = dr.opaque(mi.Float, 1.0 / base.cell_size)
-        bucket = hash_cell(cell_of(query, base.origin, inv), dr.opaque(mi.UInt32, base.table_mask))
-        occupancy = mi.Float(dr.gather(mi.UInt32, base.cell_start, bucket + 1, active) -
-                             dr.gather(mi.UInt32, base.cell_start, bucket, active))
+        inv = dr.opaque(mi.Float, 1.0 / self.radius)
+        bucket = hash_cell(cell_of(query, self.origin, inv), dr.opaque(mi.UInt32, self.level0_mask))
+        occupancy = mi.Float(dr.gather(mi.UInt32, self.level0_start, bucket + 1, active) -
+                             dr.gather(mi.UInt32, self.level0_start, bucket, active))
         # ~π c / 1.25 photons per level-0 disc; each level down divides that by 4.
         per_disc = occupancy * (math.pi / 1.25)
         ratio = per_disc / dr.opaque(mi.Float, self.DENSE_FACTOR * max(self.per_estimate, 1.0))
         level = mi.UInt32(dr.clip(dr.floor(0.5 * dr.log2(dr.maximum(ratio, 1.0))),
-                                  0, len(self.levels) - 1))
+                                  0, self.levels - 1))
         return level, dr.opaque(mi.Float, self.radius) * dr.exp2(-mi.Float(level))
 
     def for_each_neighbor(self, query: mi.Point3f, level: mi.UInt32, state, visit, active=True,
                           label="pyramid_query", with_offset: bool = False):
-        """:meth:`PointGrid.for_each_neighbor` on each query's ``level`` (from
-        :meth:`level_of`), at that level's radius."""
+        """Call ``visit(state, index, dist2, valid[, offset])`` for every point within the
+        radius of each query's ``level`` (from :meth:`level_of`); as
+        :meth:`PointGrid.for_each_neighbor`."""
         query = mi.Point3f(query)
+        if self.count == 0 or dr.width(query.x) == 0:
+            return state
         active = mi.Bool(active)
-        for k, grid in enumerate(self.levels):
-            state = grid.for_each_neighbor(query, self.radius / (1 << k), state, visit,
-                                           active=active & (level == k),
-                                           label=f"{label}_level{k}", with_offset=with_offset)
+        level = mi.UInt32(level)
+        radius = dr.opaque(mi.Float, self.radius) * dr.exp2(-mi.Float(level))
+        radius2 = radius * radius
+        inv = dr.rcp(radius)
+        center = cell_of(query, self.origin, inv)
+        mask = dr.opaque(mi.UInt32, self.table_mask)
+        level_bits = level << 30
+        for j in range(27):
+            visited = center + mi.Vector3i((j % 3) - 1, ((j // 3) % 3) - 1, (j // 9) - 1)
+            bucket = self._bucket(visited, level, mask)
+            visited_key = cell_key(visited) | level_bits
+            entry = dr.gather(mi.UInt32, self.cell_start, bucket, active)
+            end = dr.gather(mi.UInt32, self.cell_start, bucket + 1, active)
+
+            def cond(entry, end, state):
+                return active & (entry < end)
+
+            def body(entry, end, state):
+                same_cell = dr.gather(mi.UInt32, self.keys, entry) == visited_key
+                p = dr.gather(mi.Point3f, self.positions, entry, same_cell)
+                d = p - query
+                dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
+                valid = same_cell & (dist2 < radius2)
+                index = dr.gather(mi.UInt32, self.index, entry, valid)
+                state = visit(state, index, dist2, valid, d) if with_offset else \
+                    visit(state, index, dist2, valid)
+                return entry + 1, end, state
+
+            _, _, state = dr.while_loop(state=(entry, end, state), cond=cond, body=body,
+                                        label=f"{label}_cell{j}")
         return state
