@@ -61,6 +61,8 @@ class GatherSource:
     radius: float  #: how far to look for the nearest compatible photon (the coarse cell)
     fine_photons: PhotonMap | None = None  #: the same photons in ``fine_grid`` order
     fine_grid: PointGrid | None = None  #: hash grid with cell radius / FINE_GRID_DIVISOR
+    #: No caustic map: gather rays count emitters met after delta/glossy bounces.
+    caustics_by_gathering: bool = False
 
     FINE_GRID_DIVISOR = 2.0
     #: The full search reaches this many lookup radii: the precomputed photons are half
@@ -121,7 +123,10 @@ class GatherSource:
 @dr.syntax
 def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
                       rng: mi.PCG32, active: mi.Bool):
-    """Radiance (excluding emission) arriving along ``ray``, and the first hit distance.
+    """Radiance arriving along ``ray`` from the first diffuse surface it meets (through
+    delta/glossy bounces), and the first hit distance. Emission met directly is not
+    counted (the renderer samples direct light itself); emission met after a delta or
+    glossy bounce is counted only when ``source.caustics_by_gathering``.
 
     Returns ``(radiance, distance)``; ``distance`` is +inf for rays that leave the scene.
     """
@@ -132,8 +137,15 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
     distance = dr.full(mi.Float, dr.inf, dr.width(ray.o))
     bounce = dr.zeros(mi.UInt32, dr.width(ray.o))
     ctx_specular = non_diffuse_context()
+    caustics = source.caustics_by_gathering
     while dr.hint(active, label="gather_ray", max_iterations=GATHER_SPECULAR_BOUNCES + 1):
         si = scene.ray_intersect(ray, active)
+        if dr.hint(caustics, mode="scalar"):
+            # No caustic map: light reaching the record through delta/glossy bounces is
+            # counted here (emitters seen after at least one such bounce).
+            seen = active & (bounce > 0)
+            emitted = throughput * si.emitter(scene, seen).eval(si, seen)
+            radiance += dr.select(seen & dr.all(dr.isfinite(emitted)), emitted, 0.0)
         active &= si.is_valid()
         distance = dr.select(active & (bounce == 0), si.t, distance)
         bsdf = si.bsdf(ray)

@@ -56,6 +56,10 @@ RAY_OFFSET_DIAGONAL = 1e-5
 LENGTH_SCALE_LOOKUPS = 100.0
 #: Photons per caustic estimate relative to ``lookup_size``: caustics are sharper.
 CAUSTIC_LOOKUP_FRACTION = 0.5
+#: The caustic pass emits at most this many paths per requested photon...
+CAUSTIC_PATHS_PER_PHOTON = 20
+#: ...and is dropped (records gather caustic light instead) below this yield.
+CAUSTIC_MIN_YIELD = 0.25
 #: Default emitted-path bound per map, as a multiple of the requested photon count.
 MAX_PATHS_PER_PHOTON = 100
 #: ...and never less than this many paths (small requests in dim scenes).
@@ -348,8 +352,19 @@ class PMICIntegrator(mi.SamplingIntegrator):
             skipped.append("caustic map: no global photon reached a diffuse surface")
             need_caustic = False
         if need_caustic:
-            caustic_map = trace_photons(scene, CAUSTIC, self.settings.caustic_photons, self.settings.max_depth, self.settings.seed,
-                                        self._max_paths(self.settings.caustic_photons), _progress)
+            paths = min(self._max_paths(self.settings.caustic_photons),
+                        CAUSTIC_PATHS_PER_PHOTON * self.settings.caustic_photons)
+            caustic_map = trace_photons(scene, CAUSTIC, self.settings.caustic_photons,
+                                        self.settings.max_depth, self.settings.seed, paths, _progress,
+                                        warn=False)
+            if caustic_map.count < CAUSTIC_MIN_YIELD * self.settings.caustic_photons:
+                # Rare caustic paths (an environment light and a small glossy object):
+                # a map of a few thousand photons costs seconds and gives blotches;
+                # records gather those paths instead (see GatherSource).
+                skipped.append(f"caustic map: only {caustic_map.count} of "
+                               f"{self.settings.caustic_photons} photons after {caustic_map.paths_emitted} "
+                               f"paths; gather rays count caustic light instead")
+                caustic_map = PhotonMap.empty()
         dr.sync_thread()
         stats["time_photons"] = time.perf_counter() - t0
         stats["photons_global"] = global_map.count
@@ -376,6 +391,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             gather_source = GatherSource.build(
                 precompute_irradiance(global_map, global_radius, self.settings.lookup_size,
                                       depth_limit), global_radius)
+            gather_source.caustics_by_gathering = caustic_map.count == 0
         dr.sync_thread()
         stats["time_precompute"] = time.perf_counter() - t0
         stats["lookup_radius"] = global_radius

@@ -183,7 +183,7 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
 
 
 def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed: int,
-                  max_paths: int, progress=None) -> PhotonMap:
+                  max_paths: int, progress=None, warn: bool = True) -> PhotonMap:
     """Emit light paths in batches until ``target`` photons of ``kind`` are stored.
 
     ``max_depth`` has Mitsuba's meaning for the camera paths that will use the map: a
@@ -231,7 +231,7 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
         yield_per_path = stored / max(emitted, 1)
         need = (target - stored) / max(yield_per_path, 1e-3) * 1.1
         batch_paths = int(min(max(need, 1024), MAX_BATCH_PATHS))
-    if stored < LOW_YIELD_FRACTION * target:
+    if warn and stored < LOW_YIELD_FRACTION * target:
         message = (f"pmic: only {stored} of the {target} requested {kind} photons were stored "
                    f"after {emitted} emitted light paths (is a light enclosed in geometry, or "
                    f"do its photons reach no diffuse surface?)")
