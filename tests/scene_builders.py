@@ -89,3 +89,40 @@ def checker_texture(n=8, dark=0.1, light=0.8, res=64):
     board = (u[:, None] ^ u[None, :]).astype(np.float32)
     rgb = np.repeat((dark + (light - dark) * board)[..., None], 3, axis=2)
     return {"type": "bitmap", "bitmap": mi.Bitmap(rgb), "filter_type": "nearest", "raw": True}
+
+
+def cornell(size=32, **replace):
+    """Mitsuba's Cornell box at ``size``², with shapes' entries replaced or added."""
+    d = mi.cornell_box()
+    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = size
+    d["sensor"]["film"]["rfilter"] = {"type": "box"}
+    d.pop("integrator", None)
+    for key, value in replace.items():
+        if value is None:
+            d.pop(key, None)
+        elif isinstance(value, dict) and key in d and "type" not in value:
+            d[key] = {**d[key], **value}
+        else:
+            d[key] = value
+    return d
+
+
+def envmap_exterior(rotate=True, size=(40, 30), bitmap=None):
+    """A diffuse ground and a plastic sphere under an environment map with a bright
+    patch (a 'sun'), optionally rotated as real scenes' envmaps are."""
+    if bitmap is None:
+        h, w = 32, 64
+        theta = (np.arange(h) + 0.5) / h * np.pi
+        sky = np.ones((h, w, 3), np.float32) * np.float32([0.5, 0.6, 0.8])
+        sky *= (0.3 + np.sin(theta))[:, None, None].astype(np.float32)
+        sky[6:9, 40:44] = 60.0  # the sun
+        bitmap = mi.Bitmap(sky)
+    to_world = T().rotate([0, 1, 0], 110).rotate([1, 0, 0], -90) if rotate else T()
+    return {"type": "scene",
+            "sky": {"type": "envmap", "bitmap": bitmap, "to_world": to_world},
+            "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(4),
+                       "bsdf": {"type": "diffuse", "reflectance": checker_texture()}},
+            "ball": {"type": "sphere", "center": [0, 0.5, 0], "radius": 0.5,
+                     "bsdf": {"type": "plastic",
+                              "diffuse_reflectance": {"type": "rgb", "value": [0.7, 0.2, 0.2]}}},
+            "sensor": _sensor((2.5, 1.6, 2.5), (0, 0.3, 0), 40, size)}

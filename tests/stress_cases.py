@@ -16,12 +16,17 @@ A job is a dict with a ``kind``:
   rendering: nothing risky); report each exception text or that it was accepted.
 * ``references``: a list of reference jobs (``refs``), each rendering a scene with
   Mitsuba's ``path`` in ``PATH_PASSES`` passes; report each mean and its standard error.
+* ``compare``: a reference (``ref``, as in ``references``) and then ``render``, in one
+  process (the hypothesis scene fuzzing uses it).
 * ``repeat``: pmic twice with one integrator object, once with a fresh object; report
   whether the three images are bit-identical.
 * ``edit``: pmic, then double the light's radiance through ``mi.traverse``, pmic again
   with the same integrator object; report both means.
 * ``threads``: pmic once on this thread, then the same integrator object from two Python
   threads at once; report whether each thread's image equals the single-thread image.
+
+``python stress_cases.py --serve`` instead reads one JSON job per line on stdin and
+answers each with a result line (a persistent worker, for the hypothesis tests).
 
 Scenes are small (48x48 unless told otherwise), with a box pixel filter and the
 ``stratified`` sampler: several scenes show their light directly, and with independent
@@ -199,6 +204,19 @@ def cornell_object(res=RES, bsdf="diffuse"):
     return cornell(res=res, bsdf_object=BSDFS[bsdf]())
 
 
+def all_bsdfs(res=RES):
+    """The Cornell box without its boxes, holding one small sphere of each BSDF in
+    ``BSDFS`` (a 3x3 grid): every BSDF in one scene, one set of kernels to compile."""
+    d, scale = cornell(res=res)
+    d.pop("large-box")
+    d.pop("small-box")
+    for i, name in enumerate(sorted(BSDFS)):
+        x, y = (i % 3 - 1) * 0.55, -0.8 + (i // 3) * 0.5
+        d[f"sphere-{name}"] = {"type": "sphere", "center": [x, y, -0.1], "radius": 0.19,
+                               "bsdf": BSDFS[name]()}
+    return d, scale
+
+
 def twosided_back(res=RES):
     return cornell(res=res, twosided_panel=True)
 
@@ -374,6 +392,7 @@ SCENES = {
     "cornell": cornell,
     "cornell_lights": cornell_lights,
     "cornell_object": cornell_object,
+    "all_bsdfs": all_bsdfs,
     "twosided_back": twosided_back,
     "thin_box": thin_box,
     "zero_area_rect": zero_area_rect,
@@ -449,34 +468,56 @@ def _reference(mi, ref):
 
 
 def _error_text(e):
-    return {"type": type(e).__name__, "message": str(e)}
+    """The exception's type and message, and the messages of the exceptions it chains
+    (``mi.render`` wraps an integrator's exception in a generic Dr.Jit RuntimeError
+    "error while performing a custom differentiable operation"; the integrator's own
+    message is its cause, printed above it in the traceback)."""
+    chain, seen, cur = [], set(), e
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        chain.append(f"{type(cur).__name__}: {cur}")
+        cur = cur.__cause__ or cur.__context__
+    return {"type": type(e).__name__, "message": str(e), "chain": chain}
 
 
-def run(job):
-    """Run one job in this process; return a JSON-able dict."""
+_CAUGHT: list = []
+_HOOKED = False
+
+
+def _hook_warnings():
+    """Record pmic's warnings (``warnings.warn`` and its ``pmic`` logger), once."""
+    global _HOOKED
+    if _HOOKED:
+        return
     import warnings
-    import pmic_integrator  # noqa: F401  (sets up LLVM before mitsuba/drjit load)
-    import mitsuba as mi
-    import numpy as np
-    mi.set_variant("llvm_ad_rgb")
-
-    out = {"kind": job["kind"]}
-    caught = []
 
     class Catch(logging.Handler):
         def emit(self, record):
             if record.levelno >= logging.WARNING:
-                caught.append(f"log {record.levelname}: {record.getMessage()}")
+                _CAUGHT.append(f"log {record.levelname}: {record.getMessage()}")
 
     logging.getLogger("pmic").addHandler(Catch())
     warnings.simplefilter("always")
     old_show = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
-        caught.append(f"{category.__name__}: {message}")
+        _CAUGHT.append(f"{category.__name__}: {message}")
         old_show(message, category, filename, lineno, file, line)
 
     warnings.showwarning = show
+    _HOOKED = True
+
+
+def run(job):
+    """Run one job in this process; return a JSON-able dict."""
+    import pmic_integrator  # noqa: F401  (sets up LLVM before mitsuba/drjit load)
+    import mitsuba as mi
+    import numpy as np
+    mi.set_variant("llvm_ad_rgb")
+    _hook_warnings()
+    del _CAUGHT[:]
+
+    out = {"kind": job["kind"]}
     kind = job["kind"]
     spp = int(job.get("spp", PMIC_SPP))
     try:
@@ -514,13 +555,15 @@ def run(job):
             out["pmic_mean"] = luminance_mean(img)
             out.update(_finite_info(img))
             return out
+        if kind == "compare":
+            out.update(_reference(mi, job["ref"]))
 
         d, light_scale = build_scene_dict(job["scene"])
         out["light_scale"] = light_scale
         scene = mi.load_dict(d)
         t0 = time.perf_counter()
         integ = mi.load_dict(pmic_dict(job.get("params"), job.get("bare", False)))
-        if kind == "render":
+        if kind in ("render", "compare"):
             img = _render(mi, scene, integ, spp)
             out["pmic_time"] = time.perf_counter() - t0
             out["pmic_mean"] = luminance_mean(img)
@@ -575,14 +618,24 @@ def run(job):
     except Exception as e:
         out["exception"] = dict(_error_text(e), traceback=traceback.format_exc()[-3000:])
     finally:
-        out["warnings"] = caught[-20:]
+        out["warnings"] = _CAUGHT[-20:]
     return out
 
 
-def main(argv):
-    out = run(json.loads(argv[1]))
+def _emit(out):
     sys.stdout.flush()
     print(RESULT_TAG + json.dumps(out, default=str), flush=True)
+
+
+def main(argv):
+    if len(argv) > 1 and argv[1] == "--serve":
+        # Persistent worker (used by the hypothesis tests): one JSON job per stdin line,
+        # one result line per job. The parent restarts it after a timeout or a crash.
+        for line in sys.stdin:
+            if line.strip():
+                _emit(run(json.loads(line)))
+        return 0
+    _emit(run(json.loads(argv[1])))
     return 0
 
 
