@@ -83,6 +83,47 @@ def adapted_lookup_radius(positions: mi.Point3f, radius: float, per_estimate: in
     return radius
 
 
+def _edge_tables(samples: int = 257, grid: int = 801):
+    """For a disc of radius 1 cut by a straight edge at distance h from its centre (the
+    surface on the centre's side): the fraction of the Simpson kernel's mass left on
+    the surface, and the kernel-weighted centroid's distance from the centre, for h
+    from 1 (no cut) down to 0 (half a disc). Numerical integration, once."""
+    x = (np.arange(grid) + 0.5) / grid * 2 - 1
+    xx, yy = np.meshgrid(x, x)
+    d2 = xx * xx + yy * yy
+    k = np.where(d2 < 1, (1 - d2) ** 2, 0.0)
+    total = k.sum()
+    hs = np.linspace(1.0, 0.0, samples)
+    mass, centroid = [], []
+    for h in hs:
+        inside = xx <= h
+        kk = k * inside
+        mass.append(kk.sum() / total)
+        centroid.append(-(kk * xx).sum() / kk.sum())
+    return np.array(centroid), np.array(mass)
+
+
+#: Squared centroid offsets under this many times their variance are taken as noise.
+EDGE_SIGNIFICANCE = 9.0
+#: Kernel mass on the surface against the centroid's offset (both for a unit disc).
+_EDGE_CENTROID, _EDGE_MASS = _edge_tables()
+
+
+def _edge_correction(centroid2: mi.Float) -> mi.Float:
+    """1 / (kernel mass on the surface), from the squared centroid offset (in radii)."""
+    c = dr.sqrt(dr.maximum(centroid2, 0.0))
+    table_c = mi.Float(_EDGE_CENTROID.astype(np.float32))
+    table_m = mi.Float(_EDGE_MASS.astype(np.float32))
+    n = len(_EDGE_CENTROID)
+    # The centroid grows monotonically as h falls: find its interval.
+    i = dr.binary_search(0, n - 1, lambda k: dr.gather(mi.Float, table_c, k) < c)
+    i = dr.clip(i, 1, n - 1)
+    c0, c1 = dr.gather(mi.Float, table_c, i - 1), dr.gather(mi.Float, table_c, i)
+    m0, m1 = dr.gather(mi.Float, table_m, i - 1), dr.gather(mi.Float, table_m, i)
+    t = dr.clip((c - c0) / dr.maximum(c1 - c0, 1e-12), 0.0, 1.0)
+    return dr.rcp(dr.maximum(dr.lerp(m0, m1, t), _EDGE_MASS[-1]))
+
+
 def _compatible(photons: PhotonMap, index, offset, valid, query_n, radius):
     """Mask of candidate photons that lie on the query's surface, on its side
     (``offset``: photon position − query position)."""
@@ -94,7 +135,8 @@ def _compatible(photons: PhotonMap, index, offset, valid, query_n, radius):
 
 def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
                         query_n: mi.Vector3f, radius=None, max_depth=None, min_depth=None,
-                        skip_specular_paths: bool = False, active=True) -> mi.Color3f:
+                        skip_specular_paths: bool = False, active=True,
+                        boundary: bool = True) -> mi.Color3f:
     """Irradiance at ``query_p`` from the photons within ``radius``.
 
     ``grid`` is a :class:`PointGridPyramid` (the radius then adapts to the local photon
@@ -105,7 +147,8 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
     ``min_depth``/``max_depth`` (scalars or per-lane arrays) restrict the photons by
     their number of surface interactions: ``min_depth=2`` excludes direct light.
     ``skip_specular_paths`` excludes photons of L S* D paths (what a caustic map and
-    direct lighting already count).
+    direct lighting already count). ``boundary`` corrects for discs that run past the
+    edge of their surface (see below): without it, a Cornell box came out 1.2 % dark.
     """
     query_n = mi.Vector3f(query_n)
     lanes = dr.width(query_p)
@@ -117,7 +160,8 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
         radius = dr.opaque(mi.Float, radius) if isinstance(radius, (int, float)) else mi.Float(radius)
     inv_r2 = dr.rcp(dr.maximum(radius * radius, 1e-30))
 
-    def visit(total, index, dist2, valid, offset):
+    def visit(state, index, dist2, valid, offset):
+        total, moment, weight, weight2 = state
         ok = _compatible(photons, index, offset, valid, query_n, radius)
         if min_depth is not None or max_depth is not None:
             depth = dr.gather(mi.UInt32, photons.depth, index, ok)
@@ -129,16 +173,42 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
             ok &= ~dr.gather(mi.Bool, photons.specular_path, index, ok)
         # A masked gather reads zero power for rejected photons: no select needed.
         power = dr.gather(mi.Color3f, photons.power, index, ok)
-        return dr.fma(power, dr.square(1.0 - dist2 * inv_r2), total)
+        k = dr.square(1.0 - dist2 * inv_r2)
+        total = dr.fma(power, k, total)
+        if boundary:
+            # Kernel-and-power-weighted moments of the photons' offsets in the plane.
+            w = k * mi.luminance(power)
+            tangent = offset - query_n * dr.dot(offset, query_n)
+            moment = dr.fma(tangent, w, moment)
+            weight += w
+            weight2 = dr.fma(w * w, dr.squared_norm(tangent), weight2)
+        return total, moment, weight, weight2
 
-    zero = dr.zeros(mi.Color3f, lanes)
+    zero = (dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Vector3f, lanes), dr.zeros(mi.Float, lanes),
+            dr.zeros(mi.Float, lanes))
     if pyramid:
-        total = grid.for_each_neighbor(query_p, level, zero, visit, active=active,
-                                       label="photon_density_estimate", with_offset=True)
+        total, moment, weight, weight2 = grid.for_each_neighbor(
+            query_p, level, zero, visit, active=active, label="photon_density_estimate",
+            with_offset=True)
     else:
-        total = grid.for_each_neighbor(query_p, radius, zero, visit, active=active,
-                                       label="photon_density_estimate", with_offset=True)
-    return total * (3.0 * dr.inv_pi) * inv_r2
+        total, moment, weight, weight2 = grid.for_each_neighbor(
+            query_p, radius, zero, visit, active=active, label="photon_density_estimate",
+            with_offset=True)
+    estimate = total * (3.0 * dr.inv_pi) * inv_r2
+    if boundary:
+        # Where the disc runs past the surface's edge (walls meeting, a table's rim),
+        # the photons' centroid moves away from the edge; its offset tells how much of
+        # the kernel is off the surface (for a straight edge), and the estimate is
+        # divided by the part that is on it. The centroid's own noise (its variance,
+        # weight2 / weight²) is subtracted first, or every estimate would look cut.
+        # A centroid within EDGE_SIGNIFICANCE standard deviations of the query is noise:
+        # corrected anyway, a flat interior came out 1.5 % bright.
+        inv_w2 = dr.square(dr.rcp(dr.maximum(weight, 1e-30)))
+        measured = dr.squared_norm(moment) * inv_w2
+        noise = weight2 * inv_w2
+        centroid2 = dr.select(measured > EDGE_SIGNIFICANCE * noise, measured - noise, 0.0) * inv_r2
+        estimate *= dr.select(weight > 0, _edge_correction(centroid2), 1.0)
+    return estimate
 
 
 def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float,
