@@ -144,72 +144,81 @@ class PMICIntegrator(mi.SamplingIntegrator):
            first diffuse hit, the paper's Fig. 5a baseline) or ``"irradiance_cache"``
            (classic view-dependent Ward cache, records placed from the camera).
        * - ``max_depth``
-         - int
+         - integer
          - -1
-         - Longest path, in segments, as in Mitsuba's ``path`` (-1: unbounded; 1: only
-           emitters seen directly; 2: direct light only, no photon pass).
+         - Longest path, in segments, as in Mitsuba's ``path`` (-1: unbounded, else
+           1-1024; 1: only emitters seen directly; 2: direct light only, no photons).
        * - ``rr_depth``
-         - int
+         - integer
          - 5
-         - Camera-path depth from which Russian roulette may end paths.
+         - Camera-path depth from which Russian roulette may end paths (1-1024).
        * - ``hide_emitters``
-         - bool
+         - boolean
          - false
-         - Hide directly visible emitters (as in ``path``).
+         - Hide directly visible emitters; as in ``path``, a hidden area light is
+           looked through.
        * - ``global_photons``
-         - int
+         - integer
          - 200000
-         - Photons *stored* in the global map (emission runs until reached).
+         - Photons *stored* in the global map (0-5e7; emission runs until reached).
        * - ``caustic_photons``
-         - int
+         - integer
          - 100000
-         - Photons stored in the caustic map (skipped if the scene has no delta or
-           glossy surface).
+         - Photons stored in the caustic map (0-5e7; skipped if the scene has no delta
+           or glossy surface; dropped if under a quarter is stored after 20 paths per
+           photon, and records then gather caustic light instead).
        * - ``lookup_size``
-         - int
+         - integer
          - 64
-         - Photons per density estimate on average; sets the lookup radius from the
-           scene's surface area and the photon count, so scale does not matter.
+         - Photons per density estimate (8-10000); sets the base lookup radius from
+           where the photons landed (scale does not matter); estimates shrink it
+           where photons cluster.
        * - ``lookup_radius``
          - float
          - 0 (auto)
-         - World-space radius of global-map estimates; overrides ``lookup_size``.
+         - World-space base radius of global-map estimates; overrides ``lookup_size``.
+           Must hold a photon per disc on average and stay under 0.1 of the scene's
+           diagonal (checked before any work).
        * - ``max_error``
          - float
          - 0.5
-         - Ward's maximum error *a*: a record is used within ``a·R`` of its position.
-           Smaller: more records, more accurate, slower.
+         - Ward's maximum error *a* (0.01-1): a record is used within ``a·R`` of its
+           position. Smaller: more records, more accurate, slower.
        * - ``gather_rays``
-         - int
+         - integer
          - 256
-         - Final-gather rays per cache record (stratified M×N hemisphere).
+         - Final-gather rays per cache record (16-16384, stratified M×N hemisphere).
        * - ``final_gather``
-         - bool
+         - boolean
          - false
          - ``photon_map`` only: replace the radiance estimate at the first diffuse hit by
            one cosine-distributed gather ray per camera sample that reads the
            precomputed irradiance.
        * - ``max_photon_paths``
-         - int
+         - integer
          - 0 (auto)
          - Bound on emitted light paths per map (auto: 100 × the photon count, at least
            4 M). A warning is given when fewer than half the photons were stored.
        * - ``direct_samples``
-         - int
+         - integer
          - 4
-         - Emitter samples (shadow rays) per camera vertex: shadow rays cost far less
+         - Emitter samples (shadow rays) per camera vertex (1-64): shadow rays cost far less
            than camera samples (which also interpolate the cache), and direct light is
            most of the noise left.
        * - ``seed``
-         - int
+         - integer
          - 0
-         - Seed of photon tracing and gathering: the same seed gives the same cache.
+         - Seed of photon tracing and gathering (0 to 2^32-1): the same seed gives the
+           same cache.
 
     **What it does not do**: participating media are ignored (surfaces only);
     ``max_depth`` is exact for light reaching the first diffuse surface a camera path
     meets and approximate for deeper vertices reached through specular chains;
     polarised and spectral variants are not supported (use ``llvm_ad_rgb`` or
     ``cuda_ad_rgb``); it is not differentiable.
+
+    Parameter types are checked as strictly as Mitsuba's plugins do (an integer refuses
+    2.9); a bad type or value raises ValueError naming it, before any work.
 
     After ``mi.render``, ``scene.integrator().stats`` (or this object's ``stats``)
     holds counts and per-stage times in seconds.
@@ -470,7 +479,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         return (dr.gather(mi.Point3f, cand_p, selected), dr.gather(mi.Vector3f, cand_n, selected),
                 dr.gather(mi.Float, pilot, selected)), rounds
 
-    def _build_records(self, scene, cand_p, cand_n, existing: RecordIndex | None, offset):
+    def _build_records(self, scene, cand_p, cand_n, existing: RecordIndex | None, offset,
+                       _recursing: bool = False):
         """Place records among candidates (Fig. 2), compute them, return the index.
 
         With many candidates the walk visits an evenly spread subset first
@@ -507,7 +517,18 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                             self.settings.seed + 31 + (existing.records.count if existing else 0),
                                             offset)
         all_records = existing.records.extend(records) if existing is not None else records
-        return self._index(all_records), rounds
+        index = self._index(all_records)
+        # Placement tests coverage without visibility (the records' gathers, which tell
+        # which records reach past a surface, come after it): candidates covered only
+        # by records they cannot see get records of their own. A record covers its own
+        # candidate, so one pass settles it.
+        lost = dr.compress(~index.covered(cand_p, cand_n))
+        if dr.width(lost) and not _recursing:
+            index, more = self._build_records(scene, dr.gather(mi.Point3f, cand_p, lost),
+                                              dr.gather(mi.Vector3f, cand_n, lost), index, offset,
+                                              _recursing=True)
+            rounds += more
+        return index, rounds
 
     # ----------------------------------------------------------------------------------
     # Per-view preparation: records where the camera sees what no photon reached
