@@ -169,6 +169,11 @@ def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_
                               finished=lambda found: found, label="cache_coverage")
 
 
+#: Points nearer a record than this fraction of its gather's nearest hit are taken as
+#: visible without a shadow ray (the gather's rays sample directions, not all of them).
+OBSTACLE_MARGIN = 0.8
+
+
 def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active) -> mi.Bool:
     """Is record i (reach a·R, nearest gather hit ``obstacle``) blocked from (x, n)?
 
@@ -180,10 +185,12 @@ def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active) ->
     """
     if scene is None or obstacle is None:
         return dr.zeros(mi.Bool, dr.width(x))
-    test = active & (rec_reach > obstacle)
     origin = x + n * lift
     to_record = rec_p + rec_n * lift - origin
     length = dr.norm(to_record)
+    # Nothing can stand between points closer than the nearest surface the gather met
+    # (up to its sampling: OBSTACLE_MARGIN), so only the outer band of the reach pays.
+    test = active & (rec_reach > obstacle) & (length > OBSTACLE_MARGIN * obstacle)
     shadow = mi.Ray3f(origin, to_record / dr.maximum(length, 1e-30))
     shadow.maxt = length * 0.999
     return scene.ray_test(shadow, test & (length > 0))

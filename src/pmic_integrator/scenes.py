@@ -29,7 +29,8 @@ from typing import Any, Mapping
 import numpy as np
 
 #: Names of the bundled scenes, in the order benchmarks report them.
-SCENES: tuple[str, ...] = ("cornell_box", "cornell_caustics", "indirect_room")
+SCENES: tuple[str, ...] = ("cornell_box", "cornell_caustics", "indirect_room", "exterior_envmap",
+                          "interior_window")
 
 #: Integrator used when none is given: Mitsuba's path tracer without a depth limit
 #: (every bounce is kept, so its images converge to the references).
