@@ -14,10 +14,16 @@ SPP = 64  # the scenes' own default sample count
 
 #: Largest relMSE allowed per (method, scene) at default settings and 64 spp.
 THRESHOLDS = {
-    "pmic": {"cornell_box": 2e-3, "cornell_caustics": 2e-3, "indirect_room": 2e-3},
-    "irradiance_cache": {"cornell_box": 3e-3, "cornell_caustics": 3e-3, "indirect_room": 4e-3},
-    "photon_map": {"cornell_box": 8e-3, "cornell_caustics": 8e-3, "indirect_room": 2e-2},
+    "pmic": {"cornell_box": 2e-3, "cornell_caustics": 2e-3, "indirect_room": 2e-3,
+             "exterior_envmap": 5e-3, "interior_window": 1.2e-2},
+    "irradiance_cache": {"cornell_box": 3e-3, "cornell_caustics": 3e-3, "indirect_room": 4e-3,
+                         "exterior_envmap": 5e-3, "interior_window": 1.2e-2},
+    "photon_map": {"cornell_box": 8e-3, "cornell_caustics": 8e-3, "indirect_room": 2e-2,
+                   "exterior_envmap": 7e-3, "interior_window": 0.12},
 }
+#: Mean luminance must be within this of the reference's: 1 % for pmic on the scenes
+#: of real kinds (measured 0.9986-1.0029), 2 % otherwise.
+LUMINANCE_TOLERANCE = {("pmic", "exterior_envmap"): 0.01, ("pmic", "interior_window"): 0.01}
 
 
 def render(name, spp=SPP, seed=0, **params):
@@ -35,7 +41,8 @@ def test_image_matches_reference(name, method):
     assert np.isfinite(image).all()
     error = metrics.rel_mse(image, reference)
     assert error <= THRESHOLDS[method][name], f"{method} on {name}: relMSE {error:.2e}"
-    assert abs(metrics.luminance_ratio(image, reference) - 1) < 0.02
+    tolerance = LUMINANCE_TOLERANCE.get((method, name), 0.02)
+    assert abs(metrics.luminance_ratio(image, reference) - 1) < tolerance
     if method == "pmic":
         assert integrator.stats["records"] > 0
         if name == "cornell_caustics":

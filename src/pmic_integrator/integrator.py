@@ -82,6 +82,7 @@ class SceneInfo:
     has_diffuse: bool  #: some BSDF has a diffuse lobe (else no cache, no global map)
     has_specular: bool  #: some BSDF has a delta or glossy lobe (else no caustic map)
     has_infinite_emitter: bool = False  #: an environment (envmap, constant) lights the scene
+    has_delta_emitter: bool = False  #: a point, spot or directional light (no ray hits it)
 
     @staticmethod
     def of(scene: mi.Scene) -> "SceneInfo":
@@ -100,7 +101,10 @@ class SceneInfo:
         if not math.isfinite(area) or area <= 0:
             area = diagonal * diagonal
         infinite = any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) for e in scene.emitters())
-        return SceneInfo(diagonal, area, len(scene.emitters()), has_diffuse, has_specular, infinite)
+        delta = any(mi.has_flag(e.flags(), mi.EmitterFlags.DeltaPosition) or
+                    mi.has_flag(e.flags(), mi.EmitterFlags.DeltaDirection) for e in scene.emitters())
+        return SceneInfo(diagonal, area, len(scene.emitters()), has_diffuse, has_specular, infinite,
+                         delta)
 
 
 @dataclass
@@ -340,8 +344,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
         if need_caustic and not info.has_specular:
             skipped.append("caustic map: no delta or glossy surface can focus light")
             need_caustic = False
-        if need_caustic and self.settings.max_depth != -1 and self.settings.max_depth < 4:
-            skipped.append("caustic map: max_depth < 4 leaves no room for a caustic path")
+        if need_caustic and self.settings.max_depth != -1 and self.settings.max_depth < 3:
+            # light -> specular -> diffuse -> camera is 3 segments.
+            skipped.append("caustic map: max_depth < 3 leaves no room for a caustic path")
             need_caustic = False
         if self.settings.global_photons == 0 and need_global:
             skipped.append("global map: global_photons = 0")
@@ -366,10 +371,13 @@ class PMICIntegrator(mi.SamplingIntegrator):
             caustic_map = trace_photons(scene, CAUSTIC, self.settings.caustic_photons,
                                         self.settings.max_depth, self.settings.seed, paths, _progress,
                                         warn=False)
-            if caustic_map.count < CAUSTIC_MIN_YIELD * self.settings.caustic_photons:
+            if caustic_map.count < CAUSTIC_MIN_YIELD * self.settings.caustic_photons and \
+                    not info.has_delta_emitter:
                 # Rare caustic paths (an environment light and a small glossy object):
                 # a map of a few thousand photons costs seconds and gives blotches;
-                # records gather those paths instead (see GatherSource).
+                # records gather those paths instead (see GatherSource). Not with a
+                # point, spot or directional light: no gather ray can hit those, and
+                # their caustics would be lost (a sun through a window onto glass).
                 skipped.append(f"caustic map: only {caustic_map.count} of "
                                f"{self.settings.caustic_photons} photons after {caustic_map.paths_emitted} "
                                f"paths; gather rays count caustic light instead")
