@@ -52,7 +52,7 @@ def test_image_matches_reference(name, method):
 @pytest.mark.parametrize("param,coarse,fine", [
     ("global_photons", 20_000, 400_000),
     ("gather_rays", 32, 1024),
-    ("max_error", 1.0, 0.1),
+    pytest.param("max_error", 1.0, 0.1, marks=pytest.mark.slow),  # 60 s: many records at a = 0.1
 ])
 def test_error_falls_as_quality_grows(param, coarse, fine):
     # The same render seed gives both images the same camera samples (the same
