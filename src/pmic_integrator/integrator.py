@@ -164,7 +164,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
        * - ``global_photons``
          - integer
          - 200000
-         - Photons *stored* in the global map (0-5e7; emission runs until reached).
+         - Photons *stored* in the global map (1000-5e7; emission runs until reached).
        * - ``caustic_photons``
          - integer
          - 100000
@@ -409,6 +409,11 @@ class PMICIntegrator(mi.SamplingIntegrator):
                 precompute_irradiance(global_map, global_radius, self.settings.lookup_size,
                                       depth_limit), global_radius)
             gather_source.caustics_by_gathering = caustic_map.count == 0
+            if gather_source.photons.count == 0:
+                # A map of a handful of photons (a tiny max_photon_paths) can leave a
+                # half empty: nothing to gather from, so no cache.
+                skipped.append("cache: too few global photons to precompute irradiance")
+                global_map, global_grid, gather_source = PhotonMap.empty(), None, None
         dr.sync_thread()
         stats["time_precompute"] = time.perf_counter() - t0
         stats["lookup_radius"] = global_radius
