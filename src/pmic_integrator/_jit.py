@@ -63,3 +63,13 @@ def surface_offset(p: mi.Point3f, offset: float) -> mi.Float:
     """How far to push a ray origin at ``p`` off its surface: ``offset`` (a world-space
     length) plus enough to clear float rounding at ``p``'s distance from the origin."""
     return opaque_float(offset) + dr.max(dr.abs(mi.Vector3f(p))) * RAY_OFFSET_RELATIVE
+
+
+def segment_blocked(scene: mi.Scene, origin: mi.Point3f, target: mi.Point3f, active) -> mi.Bool:
+    """Does a surface lie between ``origin`` and ``target``? (One shadow ray, stopped
+    just short of the target; zero-length segments are never blocked.)"""
+    offset = target - origin
+    length = dr.norm(offset)
+    ray = mi.Ray3f(origin, offset / dr.maximum(length, 1e-30))
+    ray.maxt = length * 0.999
+    return scene.ray_test(ray, mi.Bool(active) & (length > 0))

@@ -23,7 +23,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .gather import GatherSource, stratified_directions, trace_gather_rays
-from ._jit import concat, opaque_float, opaque_u32, rng as make_rng, surface_offset
+from ._jit import concat, opaque_float, opaque_u32, rng as make_rng, segment_blocked, surface_offset
 from .hashgrid import BallGrid, PointGrid
 
 # --- Internal tuning constants -------------------------------------------------------
@@ -186,14 +186,11 @@ def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active) ->
     if scene is None or obstacle is None:
         return dr.zeros(mi.Bool, dr.width(x))
     origin = x + n * lift
-    to_record = rec_p + rec_n * lift - origin
-    length = dr.norm(to_record)
+    target = rec_p + rec_n * lift
     # Nothing can stand between points closer than the nearest surface the gather met
     # (up to its sampling: OBSTACLE_MARGIN), so only the outer band of the reach pays.
-    test = active & (rec_reach > obstacle) & (length > OBSTACLE_MARGIN * obstacle)
-    shadow = mi.Ray3f(origin, to_record / dr.maximum(length, 1e-30))
-    shadow.maxt = length * 0.999
-    return scene.ray_test(shadow, test & (length > 0))
+    test = active & (rec_reach > obstacle) & (dr.norm(target - origin) > OBSTACLE_MARGIN * obstacle)
+    return segment_blocked(scene, origin, target, test)
 
 
 def placement_priority(index: mi.UInt32) -> mi.UInt32:
@@ -369,12 +366,7 @@ def clamp_records_to_points(index: "RecordIndex", p: mi.Point3f, n: mi.Vector3f,
         distance = dr.norm(p - rp)
         bound = radius + distance
         if scene is not None:
-            origin = p + n * lift
-            to_record = rp + rn * lift - origin
-            length = dr.norm(to_record)
-            shadow = mi.Ray3f(origin, to_record / dr.maximum(length, 1e-30))
-            shadow.maxt = length * 0.999
-            hidden = scene.ray_test(shadow, ok & (length > 0))
+            hidden = segment_blocked(scene, p + n * lift, rp + rn * lift, ok)
             # Just outside the reach: ε = |x − xᵢ| / Rᵢ ≥ a.
             bound = dr.select(hidden, distance * (0.99 / index.max_error), bound)
         dr.scatter_reduce(dr.ReduceOp.Min, bound_r, bound, i, ok & (bound < rr))

@@ -16,7 +16,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context  # noqa: F401
-from ._jit import opaque_float
+from ._jit import opaque_float, segment_blocked
 from .hashgrid import PointGrid
 from .irradiance import nearest_photon
 from .photons import PhotonMap
@@ -110,13 +110,7 @@ class GatherSource:
         # floor on the lit side of a 2 mm partition lit the dark side. One shadow ray
         # between the two points, both lifted off the surface, tells them apart.
         lift = n * opaque_float(VISIBILITY_LIFT * self.radius / self.SEARCH_REACH)
-        origin = si.p + lift
-        to_photon = position + lift - origin
-        distance = dr.norm(to_photon)
-        test = found & (distance > 0)
-        shadow = mi.Ray3f(origin, to_photon / dr.maximum(distance, 1e-30))
-        shadow.maxt = distance * 0.999
-        blocked = scene.ray_test(shadow, test)
+        blocked = segment_blocked(scene, si.p + lift, position + lift, found)
         return dr.select(found & ~blocked, result, 0.0)
 
 

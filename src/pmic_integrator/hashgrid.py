@@ -26,7 +26,7 @@ from typing import Any, Callable
 import drjit as dr
 import mitsuba as mi
 
-from ._jit import opaque_u32
+from ._jit import concat, opaque_u32
 
 #: Cell coordinates are clamped to this range so that a far-away query cannot overflow
 #: the int32 cell arithmetic; entries never live there, so clamped cells find nothing.
@@ -84,6 +84,35 @@ def _bucket_sort(bucket: mi.UInt32, table_size: int):
     order = dr.argsort(bucket)
     dr.eval(cell_start, order)
     return cell_start, order
+
+
+def _scan_cell(cell_start, keys, positions, index_of, bucket, visited_key, query, radius2,
+               state, visit, active, finished, with_offset, label):
+    """Call ``visit`` for the entries of one bucket that belong to the visited cell
+    (``keys`` equal to ``visited_key``) and lie within the squared radius.
+    ``index_of(entry, valid)`` turns an entry into the index reported to ``visit``."""
+    entry = dr.gather(mi.UInt32, cell_start, bucket, active)
+    end = dr.gather(mi.UInt32, cell_start, bucket + 1, active)
+
+    def cond(entry, end, state):
+        running = active & (entry < end)
+        if finished is not None:
+            running &= ~finished(state)
+        return running
+
+    def body(entry, end, state):
+        same_cell = dr.gather(mi.UInt32, keys, entry) == visited_key
+        p = dr.gather(mi.Point3f, positions, entry, same_cell)
+        d = p - query
+        dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
+        valid = same_cell & (dist2 < radius2)
+        index = index_of(entry, valid)
+        state = visit(state, index, dist2, valid, d) if with_offset else \
+            visit(state, index, dist2, valid)
+        return entry + 1, end, state
+
+    _, _, state = dr.while_loop(state=(entry, end, state), cond=cond, body=body, label=label)
+    return state
 
 
 @dataclass
@@ -178,32 +207,15 @@ class PointGrid:
 
         # One loop per neighbour cell, unrolled in Python: the loop body then holds
         # only the per-candidate work (no per-iteration cell bookkeeping).
+        if self.order is None:
+            index_of = lambda entry, valid: entry  # noqa: E731
+        else:
+            index_of = lambda entry, valid: dr.gather(mi.UInt32, self.order, entry, valid)  # noqa: E731
         for j, offset in enumerate(offsets):
             visited = center + offset
-            bucket = hash_cell(visited, mask)
-            visited_key = cell_key(visited)
-            entry = dr.gather(mi.UInt32, self.cell_start, bucket, active)
-            end = dr.gather(mi.UInt32, self.cell_start, bucket + 1, active)
-
-            def cond(entry, end, state):
-                running = active & (entry < end)
-                if finished is not None:
-                    running &= ~finished(state)
-                return running
-
-            def body(entry, end, state):
-                same_cell = dr.gather(mi.UInt32, self.keys, entry) == visited_key
-                p = dr.gather(mi.Point3f, self.positions, entry, same_cell)
-                d = p - query
-                dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
-                valid = same_cell & (dist2 < radius2)
-                index = entry if self.order is None else dr.gather(mi.UInt32, self.order, entry, valid)
-                state = visit(state, index, dist2, valid, d) if with_offset else \
-                    visit(state, index, dist2, valid)
-                return entry + 1, end, state
-
-            _, _, state = dr.while_loop(state=(entry, end, state), cond=cond, body=body,
-                                        label=f"{label}_cell{j}")
+            state = _scan_cell(self.cell_start, self.keys, self.positions, index_of,
+                               hash_cell(visited, mask), cell_key(visited), query, radius2,
+                               state, visit, active, finished, with_offset, f"{label}_cell{j}")
         return state
 
 
@@ -370,8 +382,6 @@ class PointGridPyramid:
             cell = cell_of(sorted_p, base.origin, inv)
             buckets.append(PointGridPyramid._bucket(cell, opaque_u32(level), opaque_u32(table - 1)))
             keys.append(cell_key(cell) | (opaque_u32(level) << 30))
-        from ._jit import concat  # noqa: PLC0415 (leaf helper; _jit imports nothing of ours)
-
         bucket = concat(buckets, mi.UInt32)
         key = concat(keys, mi.UInt32)
         cell_start, entry_order = _bucket_sort(bucket, table)
@@ -422,25 +432,9 @@ class PointGridPyramid:
         level_bits = level << 30
         for j in range(27):
             visited = center + mi.Vector3i((j % 3) - 1, ((j // 3) % 3) - 1, (j // 9) - 1)
-            bucket = self._bucket(visited, level, mask)
-            visited_key = cell_key(visited) | level_bits
-            entry = dr.gather(mi.UInt32, self.cell_start, bucket, active)
-            end = dr.gather(mi.UInt32, self.cell_start, bucket + 1, active)
-
-            def cond(entry, end, state):
-                return active & (entry < end)
-
-            def body(entry, end, state):
-                same_cell = dr.gather(mi.UInt32, self.keys, entry) == visited_key
-                p = dr.gather(mi.Point3f, self.positions, entry, same_cell)
-                d = p - query
-                dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
-                valid = same_cell & (dist2 < radius2)
-                index = dr.gather(mi.UInt32, self.index, entry, valid)
-                state = visit(state, index, dist2, valid, d) if with_offset else \
-                    visit(state, index, dist2, valid)
-                return entry + 1, end, state
-
-            _, _, state = dr.while_loop(state=(entry, end, state), cond=cond, body=body,
-                                        label=f"{label}_cell{j}")
+            state = _scan_cell(self.cell_start, self.keys, self.positions,
+                               lambda entry, valid: dr.gather(mi.UInt32, self.index, entry, valid),
+                               self._bucket(visited, level, mask), cell_key(visited) | level_bits,
+                               query, radius2, state, visit, active, None, with_offset,
+                               f"{label}_cell{j}")
         return state

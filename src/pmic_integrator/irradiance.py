@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .hashgrid import PointGrid, PointGridPyramid
+from .hashgrid import PointGrid, PointGridPyramid, _next_pow2, cell_of, hash_cell
 from .photons import PhotonMap
 
 # --- Internal tuning constants -------------------------------------------------------
@@ -64,8 +64,6 @@ def adapted_lookup_radius(positions: mi.Point3f, radius: float, per_estimate: in
     count = dr.width(positions.x)
     if count == 0 or radius <= 0:
         return radius
-    from .hashgrid import _next_pow2, cell_of, hash_cell  # noqa: PLC0415 (a leaf helper)
-
     origin = mi.Point3f(dr.min(positions.x), dr.min(positions.y), dr.min(positions.z))
     table = _next_pow2(2 * count)
     stride = max(1, count // DENSITY_SAMPLE)
