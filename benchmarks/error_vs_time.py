@@ -1,9 +1,14 @@
-"""Error versus time: pmic against Mitsuba's path tracer, same scenes, same run.
+"""Error versus time: pmic and pmic + OIDN against Mitsuba's path and path + OIDN, same
+scenes, same run.
 
 For each scene, ``path`` runs at a ladder of spp and ``pmic`` at a ladder of settings
-(photon counts, max_error, gather_rays, spp). Every render is timed after a warm-up in
-the same process (``compile_s`` reports the first run's extra time separately), and
-scored against the path-traced reference: relMSE, RMSE, CIEDE2000, luminance ratio.
+(photon counts, max_error, gather_rays, spp); each ladder runs raw and denoised (Intel
+OIDN through ``pmic_integrator.denoise``, the same albedo and normal guides for both:
+Mitsuba's ``aov`` integrator for path, pmic's own identical AOVs; wall time includes the
+denoiser). Every render is timed after a warm-up in the same process (``compile_s``
+reports the first run's extra time separately), and scored against the path-traced
+reference: relMSE, FLIP, low-frequency relMSE (both images blurred by σ = 4 px),
+RMSE, CIEDE2000, luminance ratio.
 
 Writes, into ``--out`` (default ``benchmarks/results/``):
   error_vs_time_<res>.json / .csv   every run, with pmic's per-stage timings
@@ -41,22 +46,33 @@ import numpy as np
 RESULTS = Path(__file__).resolve().parent / "results"
 TARGETS = (2e-3, 1e-3, 5e-4)
 
-PATH_SPP = {"full": [4, 16, 64, 256, 1024], "quick": [4, 16]}
-#: pmic settings, cheapest first; each is one point of its curve.
+PATH_SPP = {"full": [4, 16, 64, 256], "quick": [4, 16]}
+PATH_DENOISED_SPP = {"full": [1, 2, 4, 8, 16, 32], "quick": [1, 4]}
+#: A cheap cache: behind a final gather its error is read one bounce away.
+CHEAP = {"global_photons": 50_000, "max_error": 1.0, "gather_rays": 64, "direct_samples": 1}
+#: pmic settings (default estimator: final gather), cheapest first; each is one point of
+#: its curve, raw and denoised.
 PMIC_LADDER = {
     "full": [
-        {"global_photons": 100_000, "max_error": 0.6, "gather_rays": 256, "spp": 8, "direct_samples": 1},
-        {"global_photons": 200_000, "max_error": 0.5, "gather_rays": 256, "spp": 16},
-        {"global_photons": 200_000, "max_error": 0.5, "gather_rays": 256, "spp": 32},
-        {"global_photons": 200_000, "max_error": 0.4, "gather_rays": 512, "spp": 64},
-        {"global_photons": 400_000, "max_error": 0.3, "gather_rays": 1024, "spp": 128},
-        {"global_photons": 400_000, "max_error": 0.3, "gather_rays": 1024, "spp": 256},
+        {**CHEAP, "spp": 2},
+        {**CHEAP, "spp": 4},
+        {**CHEAP, "spp": 8},
+        {**CHEAP, "spp": 16},
+        {"global_photons": 100_000, "max_error": 0.8, "gather_rays": 128, "direct_samples": 1, "spp": 32},
+        {"global_photons": 200_000, "spp": 64},
     ],
     "quick": [
         {"global_photons": 20_000, "max_error": 0.8, "gather_rays": 64, "spp": 4},
         {"global_photons": 50_000, "max_error": 0.6, "gather_rays": 128, "spp": 8},
     ],
 }
+#: The four curves: (label, integrator, denoised).
+CURVES = (("path", "path", False), ("path+OIDN", "path", True),
+          ("pmic", "pmic", False), ("pmic+OIDN", "pmic", True))
+#: Crops shown for each method (fractions of the image: y0, y1, x0, x1).
+CROPS = {"cornell_box": {"light gap": (0.0, 0.14, 0.33, 0.67),
+                         "contact shadow": (0.70, 0.92, 0.18, 0.48)},
+         "indirect_room": {"corner": (0.0, 0.3, 0.0, 0.3), "floor": (0.7, 1.0, 0.35, 0.65)}}
 
 
 def envelope(points):
@@ -93,35 +109,89 @@ def run_scene(name, resolution, mode, log):
     reference = scenes.load_reference(name, resolution)
     scene = scenes.load_scene(name, resolution=resolution, spp=4)
     rows = []
-    path = mi.load_dict(dict(compare.PATH_INTEGRATOR))
-    _, cold = compare.timed_render(scene, path, 1, seed=99)
-    _, warm = compare.timed_render(scene, path, 1, seed=98)
-    for spp in PATH_SPP[mode]:
-        image, seconds = compare.timed_render(scene, path, spp, seed=spp)
-        r = compare.score(compare.RenderResult("path", dict(compare.PATH_INTEGRATOR), spp, seconds,
-                                               max(0.0, cold - warm), image=image), reference)
-        rows.append(r)
-        log(f"  path  spp {spp:5d}  {seconds:7.2f} s  relMSE {r.rel_mse:.2e}")
-    for setting in PMIC_LADDER[mode]:
-        spec = {"type": "pmic", **{k: v for k, v in setting.items() if k != "spp"}}
-        r = compare.render_measured(scene, spec, setting["spp"], reference, label="pmic")
-        rows.append(r)
-        s = r.stats
-        log(f"  pmic  {setting}  {r.seconds:7.2f} s  relMSE {r.rel_mse:.2e}  "
-            f"(photons {s.get('time_photons', 0):.2f} precompute {s.get('time_precompute', 0):.2f} "
-            f"cache {s.get('time_cache', 0):.2f} render {s.get('time_render', 0):.2f} s, "
-            f"{s.get('records', 0)} records)")
+    for label, kind, denoised in CURVES:
+        if kind == "path":
+            spec = dict(compare.PATH_INTEGRATOR)
+            ladder = [{"spp": spp} for spp in (PATH_DENOISED_SPP if denoised else PATH_SPP)[mode]]
+        else:
+            spec, ladder = {"type": "pmic"}, PMIC_LADDER[mode]
+        for setting in ladder:
+            run_spec = {**spec, **{k: v for k, v in setting.items() if k != "spp"}}
+            r = compare.render_measured(scene, run_spec, setting["spp"], reference, label=label,
+                                        denoised=denoised)
+            rows.append(r)
+            s = r.stats
+            stages = (f"  (photons {s.get('time_photons', 0):.2f} precompute {s.get('time_precompute', 0):.2f} "
+                      f"cache {s.get('time_cache', 0):.2f} render {s.get('time_render', 0):.2f} s, "
+                      f"{s.get('records', 0)} records)") if kind == "pmic" else ""
+            log(f"  {label:9s} {setting}  {r.seconds:7.2f} s  relMSE {r.rel_mse:.2e}  "
+                f"FLIP {r.flip:.3f}  low-freq {r.low_frequency:.2e}  lum {r.luminance_ratio:.4f}{stages}")
+            save_crops(name, label, r, resolution)
     return rows
 
 
-def speedups(rows, noise=0.0):
-    path = [(r.seconds, max(r.rel_mse - noise, 1e-12)) for r in rows if r.label == "path"]
-    pmic = [(r.seconds, max(r.rel_mse - noise, 1e-12)) for r in rows if r.label == "pmic"]
+CROP_IMAGES: dict = {}
+
+
+def save_crops(name, label, result, resolution):
+    """Keep each method's image nearest in time to the showcase (see write_crops)."""
+    CROP_IMAGES.setdefault(name, {}).setdefault(label, []).append((result.seconds, result.rel_mse,
+                                                                  result.image))
+
+
+def write_crops(name, out: Path, stem: str, reference):
+    """One PNG per scene: for each method, its run nearest in time to the pmic+OIDN
+    run that first reaches 1e-3 (else its fastest), full image and crops."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from pmic_integrator import metrics
+
+    runs = CROP_IMAGES.get(name, {})
+    if not runs or name not in CROPS:
+        return None
+    showcase = runs.get("pmic+OIDN") or next(iter(runs.values()))
+    reached = [t for t, e, _ in sorted(showcase, key=lambda x: x[0]) if e <= 1e-3]
+    t_show = reached[0] if reached else min(t for t, _, _ in showcase)
+    crops = CROPS[name]
+    labels = list(runs) + ["reference"]
+    fig, axes = plt.subplots(len(crops) + 1, len(labels), figsize=(2.4 * len(labels), 2.4 * (len(crops) + 1)))
+    for j, label in enumerate(labels):
+        if label == "reference":
+            image, title = reference, "reference"
+        else:
+            t, e, image = min(runs[label], key=lambda x: abs(math.log(x[0] / t_show)))
+            title = f"{label}\n{t:.1f} s, relMSE {e:.1e}"
+        ldr = metrics.tonemap_srgb(image)
+        axes[0, j].imshow(ldr)
+        axes[0, j].set_title(title, fontsize=7)
+        h, w = image.shape[:2]
+        for i, (crop_name, (y0, y1, x0, x1)) in enumerate(crops.items(), start=1):
+            axes[i, j].imshow(ldr[int(y0 * h):int(y1 * h), int(x0 * w):int(x1 * w)], interpolation="nearest")
+            if j == 0:
+                axes[i, j].set_ylabel(crop_name, fontsize=8)
+        for ax in axes[:, j]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.tight_layout()
+    path = out / f"{stem}_{name}_crops.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def speedups(rows, noise=0.0, ours="pmic", theirs="path"):
+    path = [(r.seconds, max(r.rel_mse - noise, 1e-12)) for r in rows if r.label == theirs]
+    pmic = [(r.seconds, max(r.rel_mse - noise, 1e-12)) for r in rows if r.label == ours]
     out = {}
     path_best = min(e for _, e in path) if path else math.inf
     for target in TARGETS:
-        tp, tq = time_to_reach(path, target, extrapolate=True), time_to_reach(pmic, target)
-        out[f"{target:.0e}"] = {"path_s": tp, "pmic_s": tq, "path_extrapolated": path_best > target,
+        # A denoised curve is not unbiased Monte Carlo: never extrapolated.
+        tp = time_to_reach(path, target, extrapolate="OIDN" not in theirs)
+        tq = time_to_reach(pmic, target)
+        out[f"{target:.0e}"] = {"path_s": tp, "pmic_s": tq,
+                                "path_extrapolated": path_best > target and "OIDN" not in theirs,
                                 "speedup": (tp / tq) if tp and tq else None}
     return out
 
@@ -133,7 +203,7 @@ def plot(name, rows, path_png, resolution):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.5, 4))
-    for label, style in (("path", "o-"), ("pmic", "s-")):
+    for label, style in (("path", "o-"), ("path+OIDN", "o--"), ("pmic", "s-"), ("pmic+OIDN", "s--")):
         pts = sorted((r.seconds, r.rel_mse) for r in rows if r.label == label)
         ax.plot([p[0] for p in pts], [p[1] for p in pts], style, label=label)
     for target in TARGETS:
@@ -171,34 +241,39 @@ def write_outputs(results, out: Path, stem: str):
         rows = [SimpleNamespace(**r) for r in data["runs"]]
         noise = data["reference_noise_rel_mse"]
         data["speedup"] = ups = speedups(rows)
+        data["speedup_denoised"] = ups_dn = speedups(rows, ours="pmic+OIDN", theirs="path+OIDN")
         data["speedup_noise_corrected"] = corrected = speedups(rows, noise)
         plot(name, rows, out / f"{stem}_{name}.png", resolution)
-        md += [f"## {name}", "", "| integrator | settings | spp | time [s] | compile [s] | relMSE | RMSE | "
-               "CIEDE2000 | luminance |", "|---|---|---|---|---|---|---|---|---|"]
+        md += [f"## {name}", "", "| method | settings | spp | time [s] | compile [s] | relMSE | FLIP | "
+               "low-freq relMSE (σ 4 px) | CIEDE2000 | luminance |", "|---|---|---|---|---|---|---|---|---|---|"]
         for r in rows:
             settings = {k: v for k, v in r.integrator.items() if k != "type"}
             md.append(f"| {r.label} | {settings or ''} | {r.spp} | {r.seconds:.2f} | {r.compile_s:.2f} | "
-                      f"{r.rel_mse:.2e} | {r.rmse:.4f} | {r.ciede2000:.3f} | {r.luminance_ratio:.4f} |")
+                      f"{r.rel_mse:.2e} | {getattr(r, 'flip', math.nan):.3f} | "
+                      f"{getattr(r, 'low_frequency', math.nan):.2e} | {r.ciede2000:.3f} | {r.luminance_ratio:.4f} |")
         md += ["", f"Reference: `{data['reference']}`; its own noise relMSE {noise:.1e}.", "",
-               "| relMSE target | path [s] | pmic [s] | pmic speed-up | noise-corrected: path [s] | pmic [s] | speed-up |",
-               "|---|---|---|---|---|---|---|"]
+               "| relMSE target | path+OIDN [s] | pmic+OIDN [s] | speed-up | path [s] | pmic [s] | speed-up "
+               "| noise-corrected speed-up (raw) |", "|---|---|---|---|---|---|---|---|"]
         for target, v in ups.items():
-            c = corrected[target]
-            md.append(f"| {target} | {fmt(v['path_s'], v['path_extrapolated'])} | {fmt(v['pmic_s'])} | "
-                      f"{sp(v)} | {fmt(c['path_s'], c['path_extrapolated'])} | {fmt(c['pmic_s'])} | {sp(c)} |")
+            c, d = corrected[target], ups_dn[target]
+            md.append(f"| {target} | {fmt(d['path_s'])} | {fmt(d['pmic_s'])} | {sp(d)} | "
+                      f"{fmt(v['path_s'], v['path_extrapolated'])} | {fmt(v['pmic_s'])} | {sp(v)} | {sp(c)} |")
         md += ["", f"![{name}]({stem}_{name}.png)", ""]
-        print(name, json.dumps(ups), flush=True)
+        if (out / f"{stem}_{name}_crops.png").exists():
+            md += [f"![{name} crops]({stem}_{name}_crops.png)", ""]
+        print(name, "raw", json.dumps(ups), "denoised", json.dumps(ups_dn), flush=True)
     (out / f"{stem}.json").write_text(json.dumps(results, indent=2, default=str))
     (out / f"{stem}.md").write_text("\n".join(md) + "\n")
     with open(out / f"{stem}.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["scene", "integrator", "settings", "spp", "seconds", "compile_s", "rel_mse", "rmse",
-                    "ciede2000", "luminance_ratio"])
+        w.writerow(["scene", "integrator", "settings", "spp", "seconds", "compile_s", "rel_mse", "flip",
+                    "low_frequency", "rmse", "ciede2000", "luminance_ratio"])
         for name, data in results["scenes"].items():
             for r in data["runs"]:
                 w.writerow([name, r["label"], json.dumps({k: v for k, v in r["integrator"].items()
                                                           if k != "type"}),
-                            r["spp"], r["seconds"], r["compile_s"], r["rel_mse"], r["rmse"],
+                            r["spp"], r["seconds"], r["compile_s"], r["rel_mse"], r.get("flip"),
+                            r.get("low_frequency"), r["rmse"],
                             r["ciede2000"], r["luminance_ratio"]])
     print(f"wrote {out / stem}.json/.csv/.md and plots")
 
@@ -231,6 +306,7 @@ def main(argv=None):
         print(f"{name}:", flush=True)
         meta = bundled.read_exr_metadata(bundled.reference_path(name, resolution))
         rows = run_scene(name, resolution, mode, lambda s: print(s, flush=True))
+        write_crops(name, args.out, stem, bundled.load_reference(name, resolution))
         results["scenes"][name] = {"runs": [r.row() for r in rows],
                                    "reference_noise_rel_mse": float(meta.get("pmic_noise_rel_mse", 0.0)),
                                    "reference": meta.get("pmic_command", "")}

@@ -12,18 +12,34 @@ from pmic_integrator import metrics, scenes
 
 SPP = 64  # the scenes' own default sample count
 
-#: Largest relMSE allowed per (method, scene) at default settings and 64 spp.
+#: The configurations tested: pmic's default (final gather), the paper's first-hit
+#: interpolation, and the two baselines.
+CONFIGS = {
+    "pmic": {"method": "pmic"},
+    "pmic_first_hit": {"method": "pmic", "estimator": "first_hit"},
+    "irradiance_cache": {"method": "irradiance_cache"},
+    "photon_map": {"method": "photon_map"},
+}
+#: Largest relMSE allowed per (configuration, scene) at default settings and 64 spp.
+#: The final gather's error is noise (it falls as 1/spp; measured 2.6e-3, 2.9e-3,
+#: 1.7e-2, 3.1e-3, 8.9e-3), first-hit's is mostly a floor of blotches.
 THRESHOLDS = {
-    "pmic": {"cornell_box": 2e-3, "cornell_caustics": 2e-3, "indirect_room": 2e-3,
-             "exterior_envmap": 5e-3, "interior_window": 1.2e-2},
+    "pmic": {"cornell_box": 3.5e-3, "cornell_caustics": 4e-3, "indirect_room": 2.2e-2,
+             "exterior_envmap": 4.5e-3, "interior_window": 1.2e-2},
+    "pmic_first_hit": {"cornell_box": 2e-3, "cornell_caustics": 2e-3, "indirect_room": 2e-3,
+                       "exterior_envmap": 5e-3, "interior_window": 1.2e-2},
     "irradiance_cache": {"cornell_box": 3e-3, "cornell_caustics": 3e-3, "indirect_room": 4e-3,
                          "exterior_envmap": 5e-3, "interior_window": 1.2e-2},
     "photon_map": {"cornell_box": 8e-3, "cornell_caustics": 8e-3, "indirect_room": 2e-2,
                    "exterior_envmap": 7e-3, "interior_window": 0.12},
 }
 #: Mean luminance must be within this of the reference's: 1 % for pmic on the scenes
-#: of real kinds (measured 0.9986-1.0029), 2 % otherwise.
-LUMINANCE_TOLERANCE = {("pmic", "exterior_envmap"): 0.01, ("pmic", "interior_window"): 0.01}
+#: of real kinds (measured 0.9986-1.0029 first-hit; final gather 1.0010 and 1.0092),
+#: 2 % otherwise. interior_window's sun is a directional light shining through a glass
+#: sphere: path (and so the reference) cannot carry that caustic, the caustic map does.
+LUMINANCE_TOLERANCE = {("pmic", "exterior_envmap"): 0.01, ("pmic", "interior_window"): 0.015,
+                       ("pmic_first_hit", "exterior_envmap"): 0.01,
+                       ("pmic_first_hit", "interior_window"): 0.01}
 
 
 def render(name, spp=SPP, seed=0, **params):
@@ -33,17 +49,17 @@ def render(name, spp=SPP, seed=0, **params):
     return image, integrator
 
 
-@pytest.mark.parametrize("method", list(THRESHOLDS))
+@pytest.mark.parametrize("config", list(THRESHOLDS))
 @pytest.mark.parametrize("name", scenes.SCENES)
-def test_image_matches_reference(name, method):
-    image, integrator = render(name, method=method)
+def test_image_matches_reference(name, config):
+    image, integrator = render(name, **CONFIGS[config])
     reference = scenes.load_reference(name)
     assert np.isfinite(image).all()
     error = metrics.rel_mse(image, reference)
-    assert error <= THRESHOLDS[method][name], f"{method} on {name}: relMSE {error:.2e}"
-    tolerance = LUMINANCE_TOLERANCE.get((method, name), 0.02)
+    assert error <= THRESHOLDS[config][name], f"{config} on {name}: relMSE {error:.2e}"
+    tolerance = LUMINANCE_TOLERANCE.get((config, name), 0.02)
     assert abs(metrics.luminance_ratio(image, reference) - 1) < tolerance
-    if method == "pmic":
+    if config.startswith("pmic"):
         assert integrator.stats["records"] > 0
         if name == "cornell_caustics":
             assert integrator.stats["photons_caustic"] > 0
@@ -58,6 +74,8 @@ def test_error_falls_as_quality_grows(param, coarse, fine):
     # The same render seed gives both images the same camera samples (the same
     # direct-light noise), so the difference comes from the cache alone.
     reference = scenes.load_reference("cornell_box")
-    errors = [metrics.rel_mse(render("cornell_box", spp=32, **{param: value})[0], reference)
+    # First-hit interpolation: the cache's error is seen directly, not behind a gather.
+    errors = [metrics.rel_mse(render("cornell_box", spp=32, estimator="first_hit",
+                                     **{param: value})[0], reference)
               for value in (coarse, fine)]
     assert errors[1] < 0.9 * errors[0], f"{param}: {errors}"

@@ -27,4 +27,6 @@ register = _registration.register
 
 _registration.install()
 
-__all__ = ["register", "__version__"]
+from .denoise import denoise, split_channels  # noqa: E402
+
+__all__ = ["register", "denoise", "split_channels", "__version__"]

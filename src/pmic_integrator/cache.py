@@ -45,6 +45,12 @@ CELL_PER_REACH = 0.5
 #: Gradients are limited so that a first-order extrapolation over the record's reach
 #: cannot go below zero or above twice the record's irradiance.
 GRADIENT_LIMIT = 1.0
+#: Emitter samples per record for its direct irradiance (final gather only): an area
+#: light's irradiance varies by a few % over its solid angle, so 64 samples give ~1 %
+#: where it is in full view; the error is read one diffuse bounce away from the camera.
+RECORD_DIRECT_SAMPLES = 64
+#: Random stream of those samples (see ``_jit.rng``).
+RECORD_DIRECT_STREAM = 11
 
 
 @dataclass
@@ -174,10 +180,13 @@ def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_
 OBSTACLE_MARGIN = 0.8
 
 
-def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active) -> mi.Bool:
+def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active,
+                always: bool = False) -> mi.Bool:
     """Is record i (reach a·R, nearest gather hit ``obstacle``) blocked from (x, n)?
 
-    Only records whose reach passes the nearest surface their gather met are tested
+    Unless ``always`` (records holding direct light, which a leak carries far
+    brighter), only records whose reach passes the nearest surface their gather met are
+    tested
     (one shadow ray between the two points, lifted ``lift`` off their surfaces): the
     others cannot reach around anything. A floor split by a thin wall has the same
     plane and normal on both sides; without this, the lit side's records lit a strip
@@ -190,6 +199,8 @@ def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active) ->
     # Nothing can stand between points closer than the nearest surface the gather met
     # (up to its sampling: OBSTACLE_MARGIN), so only the outer band of the reach pays.
     test = active & (rec_reach > obstacle) & (dr.norm(target - origin) > OBSTACLE_MARGIN * obstacle)
+    if always:
+        test = mi.Bool(active)
     return segment_blocked(scene, origin, target, test)
 
 
@@ -455,6 +466,27 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
     return records
 
 
+def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f, samples: int,
+                      seed: int, offset: float) -> mi.Color3f:
+    """Irradiance straight from the emitters at each (position, normal): the mean of
+    ``samples`` emitter samples with shadow rays (Mitsuba's emitter importance
+    sampling), each non-finite sample counted as 0."""
+    count = dr.width(position)
+    lanes = count * samples
+    owner = dr.arange(mi.UInt32, lanes) // opaque_u32(samples)
+    p = dr.gather(mi.Point3f, position, owner)
+    n = dr.gather(mi.Vector3f, normal, owner)
+    ref = dr.zeros(mi.Interaction3f, lanes)
+    ref.p = p + n * surface_offset(p, offset)
+    ref.n = n
+    rng = make_rng(lanes, seed, stream=RECORD_DIRECT_STREAM)
+    ds, weight = scene.sample_emitter_direction(ref, mi.Point2f(rng.next_float32(), rng.next_float32()),
+                                                True)
+    e = weight * dr.maximum(dr.dot(ds.d, n), 0.0)
+    e = dr.select((ds.pdf > 0) & dr.all(dr.isfinite(e)), e, 0.0)
+    return mi.Color3f(block_sum(mi.Color3f(e), samples)) / samples
+
+
 # --------------------------------------------------------------------------------------
 # Lookup structure and interpolation
 # --------------------------------------------------------------------------------------
@@ -468,6 +500,9 @@ class RecordIndex:
     backup_grid: BallGrid  #: balls of radius BACKUP_REACH·a·R, for gaps
     scene: object = None  #: for visibility tests of records reaching past a surface
     lift: float = 0.0  #: how far those tests start off the surfaces
+    #: Direct irradiance at each record (final gather: the gather hit reflects all of
+    #: its light), added to the indirect irradiance when interpolating; None: not kept.
+    direct: mi.Color3f = None
 
     @staticmethod
     def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0) -> "RecordIndex":
@@ -493,9 +528,10 @@ class RecordIndex:
         r = self.records
         lanes = dr.width(x)
         visibility = self._visibility()
+        direct = self.direct
 
         def visit(state, index, valid):
-            total, weight_sum = state
+            total, weight_sum, radius_sum = state
             rp = dr.gather(mi.Point3f, r.position, index, valid)
             rn = dr.gather(mi.Vector3f, r.normal, index, valid)
             rr = dr.gather(mi.Float, r.radius, index, valid)
@@ -505,8 +541,11 @@ class RecordIndex:
             if visibility is not None:
                 scene, obstacle, lift = visibility
                 ob = dr.gather(mi.Float, obstacle, index, ok)
-                ok &= ~hidden_from(scene, x, n, rp, rn, rr * max_error, ob, lift, ok)
+                ok &= ~hidden_from(scene, x, n, rp, rn, rr * max_error, ob, lift, ok,
+                                   always=direct is not None)
             e = dr.gather(mi.Color3f, r.irradiance, index, ok)
+            if direct is not None:
+                e_direct = dr.gather(mi.Color3f, direct, index, ok)
             dx = x - rp
             rot = dr.cross(rn, n)
             ext = []
@@ -515,15 +554,21 @@ class RecordIndex:
                 gr = dr.gather(mi.Vector3f, r.grad_r[c], index, ok)
                 ext.append(e[c] + dr.dot(gt, dx) + dr.dot(gr, rot))
             e_x = dr.maximum(mi.Color3f(*ext), 0.0)
+            if direct is not None:
+                e_x += e_direct
             total = dr.select(ok, total + w * e_x, total)
             weight_sum = dr.select(ok, weight_sum + w, weight_sum)
-            return total, weight_sum
+            radius_sum = dr.select(ok, radius_sum + w * rr, radius_sum)
+            return total, weight_sum, radius_sum
 
-        return grid.for_each_ball(x, (dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Float, lanes)), visit,
+        zeros = dr.zeros(mi.Float, lanes)
+        return grid.for_each_ball(x, (dr.zeros(mi.Color3f, lanes), zeros, mi.Float(zeros)), visit,
                                   active=active, label=label)
 
-    def interpolate(self, x: mi.Point3f, n: mi.Vector3f, active=True):
-        """E(x) = Σ wᵢ Eᵢ(x) / Σ wᵢ with gradients; returns ``(E, covered)``.
+    def interpolate(self, x: mi.Point3f, n: mi.Vector3f, active=True, with_radius: bool = False):
+        """E(x) = Σ wᵢ Eᵢ(x) / Σ wᵢ with gradients; returns ``(E, covered)``, and with
+        ``with_radius`` also the weighted mean record radius Σ wᵢ Rᵢ / Σ wᵢ (how far
+        the geometry the records saw is: the final gather's trust test).
 
         wᵢ is :func:`interpolation_weight` with the maximum error a; lanes that no
         record reaches use the records within ``BACKUP_REACH`` × a instead.
@@ -531,14 +576,20 @@ class RecordIndex:
         """
         lanes = dr.width(x)
         if self.records.count == 0:
-            return dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes)
+            zero = dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes)
+            return zero + (dr.zeros(mi.Float, lanes),) if with_radius else zero
         active = mi.Bool(active)
-        total, weight_sum = self._weighted_sum(self.grid, self.max_error, x, n, active,
-                                               "cache_interpolation")
+        total, weight_sum, radius_sum = self._weighted_sum(self.grid, self.max_error, x, n, active,
+                                                           "cache_interpolation")
         gap = active & (weight_sum <= 0)
-        total_b, weight_b = self._weighted_sum(self.backup_grid, self.max_error * BACKUP_REACH,
-                                               x, n, gap, "cache_interpolation_backup")
+        total_b, weight_b, radius_b = self._weighted_sum(
+            self.backup_grid, self.max_error * BACKUP_REACH, x, n, gap, "cache_interpolation_backup")
         total = dr.select(gap, total_b, total)
         weight_sum = dr.select(gap, weight_b, weight_sum)
+        radius_sum = dr.select(gap, radius_b, radius_sum)
         covered = weight_sum > 0
-        return dr.select(covered, total / dr.maximum(weight_sum, 1e-30), 0.0), covered
+        safe_sum = dr.maximum(weight_sum, 1e-30)
+        irradiance = dr.select(covered, total / safe_sum, 0.0)
+        if with_radius:
+            return irradiance, covered, dr.select(covered, radius_sum / safe_sum, 0.0)
+        return irradiance, covered

@@ -53,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--spp", type=int, default=32, help="pmic samples per pixel (default: 32)")
     parser.add_argument("--set", action="append", metavar="NAME=VALUE",
                         help="a pmic parameter, e.g. --set global_photons=400000 (repeatable)")
+    parser.add_argument("--denoise", action="store_true",
+                        help="also render pmic + OIDN and path + OIDN at equal time (same albedo "
+                             "and normal guides, wall time includes the denoiser)")
     parser.add_argument("--output", type=Path, default=Path("pmic-output"),
                         help="folder for the EXR/PNG images and results.json (default: pmic-output)")
     parser.add_argument("--variant", default="llvm_ad_rgb",
@@ -84,13 +87,27 @@ def main(argv=None) -> int:
     pmic = compare.render_measured(scene, spec, args.spp, reference, label="pmic")
     print(f"rendering with path for the same time ({pmic.seconds:.2f} s) ...", flush=True)
     path = compare.path_at_equal_time(scene, pmic.seconds, reference)
+    results = [pmic, path]
+    if args.denoise:
+        print("rendering pmic + OIDN, then path + OIDN for the same time ...", flush=True)
+        pmic_dn = compare.render_measured(scene, spec, args.spp, reference, label="pmic+OIDN",
+                                          denoised=True)
+        path_dn = compare.path_at_equal_time(scene, pmic_dn.seconds, reference, denoised=True)
+        path_dn.label = "path+OIDN"
+        results += [pmic_dn, path_dn]
 
     print()
-    print(f"{'integrator':12s} {'spp':>6s} {'time [s]':>9s} {'relMSE':>10s} {'RMSE':>9s} "
-          f"{'luminance':>10s} {'CIEDE2000':>10s}")
-    for r in (pmic, path):
-        print(f"{r.label:12s} {r.spp:6d} {r.seconds:9.2f} {r.rel_mse:10.2e} {r.rmse:9.4f} "
-              f"{r.luminance_ratio:10.4f} {r.ciede2000:10.3f}")
+    print(f"{'integrator':12s} {'spp':>6s} {'time [s]':>9s} {'relMSE':>10s} {'FLIP':>7s} "
+          f"{'low-freq':>10s} {'RMSE':>9s} {'luminance':>10s} {'CIEDE2000':>10s}")
+    for r in results:
+        print(f"{r.label:12s} {r.spp:6d} {r.seconds:9.2f} {r.rel_mse:10.2e} {r.flip:7.3f} "
+              f"{r.low_frequency:10.2e} {r.rmse:9.4f} {r.luminance_ratio:10.4f} {r.ciede2000:10.3f}")
+    print("(low-freq = relMSE of both images blurred by a 4-pixel Gaussian: structured error)")
+    if args.denoise:
+        dn_ratio = path_dn.rel_mse / pmic_dn.rel_mse if pmic_dn.rel_mse > 0 else float("inf")
+        print(f"Denoised, at equal time: pmic+OIDN's relMSE is {dn_ratio:.2f}x "
+              f"{'lower' if dn_ratio >= 1 else 'higher'} than path+OIDN's"
+              + ("" if dn_ratio >= 1 else f" ({1 / dn_ratio:.2f}x)") + ".")
     ratio = path.rel_mse / pmic.rel_mse if pmic.rel_mse > 0 else float("inf")
     print("(relMSE = mean((img-ref)^2/(ref^2+0.01)); luminance = mean luminance / the reference's)")
     if ratio >= 1:
@@ -108,7 +125,7 @@ def main(argv=None) -> int:
 
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
-    for r in (pmic, path):
+    for r in results:
         scenes.write_exr(out / f"{args.scene}_{r.label}.exr", r.image)
     scenes.write_exr(out / f"{args.scene}_reference.exr", reference)
     strip = np.concatenate([tonemap_srgb(pmic.image), tonemap_srgb(path.image), tonemap_srgb(reference)], 1)
@@ -116,7 +133,7 @@ def main(argv=None) -> int:
         str(out / f"{args.scene}_pmic_path_reference.png"))
     (out / "results.json").write_text(json.dumps(
         {"scene": args.scene, "resolution": args.resolution, "variant": args.variant,
-         "results": [pmic.row(), path.row()]}, indent=2, default=str))
+         "results": [r.row() for r in results]}, indent=2, default=str))
     print(f"images and results.json written to {out.resolve()}")
     return 0
 

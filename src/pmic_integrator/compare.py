@@ -19,6 +19,24 @@ import numpy as np
 from . import metrics
 
 PATH_INTEGRATOR = {"type": "path", "max_depth": -1}
+#: Blur of the low-frequency error (pixels): what remains is structure, not noise.
+LOW_FREQUENCY_SIGMA = 4.0
+
+
+def with_guides(spec: dict) -> dict:
+    """``spec`` made to output the denoiser's guides after the colour: albedo (3
+    channels), then the shading normal (3). pmic outputs them itself; any other
+    integrator is wrapped in Mitsuba's ``aov`` integrator, which computes the same."""
+    if spec["type"] == "pmic":
+        return {**spec, "aovs": "albedo,normal"}
+    return {"type": "aov", "aovs": "albedo:albedo,normal:sh_normal", "integrator": dict(spec)}
+
+
+def denoise_guided(image: np.ndarray) -> np.ndarray:
+    """Denoise an image rendered with :func:`with_guides` (colour, albedo, normal)."""
+    from .denoise import denoise
+
+    return denoise(image[..., 0:3], image[..., 3:6], image[..., 6:9])
 
 
 @dataclass
@@ -31,6 +49,9 @@ class RenderResult:
     seconds: float  #: wall time of the timed render (after warm-up)
     compile_s: float  #: extra time of the first, cold render (kernel compilation)
     rel_mse: float = math.nan  #: mean((img - ref)² / (ref² + 1e-2))
+    denoised: bool = False  #: denoised with OIDN (OptiX on CUDA), time included
+    flip: float = math.nan  #: mean LDR FLIP error
+    low_frequency: float = math.nan  #: relMSE of both images blurred by σ = 4 px
     rmse: float = math.nan  #: root mean squared error
     luminance_ratio: float = math.nan  #: mean luminance / the reference's
     ciede2000: float = math.nan  #: mean CIEDE2000 after a fixed sRGB tone map
@@ -44,14 +65,17 @@ class RenderResult:
         return d
 
 
-def timed_render(scene, integrator, spp: int, seed: int = 0):
-    """Render and evaluate; return (image as numpy, seconds)."""
+def timed_render(scene, integrator, spp: int, seed: int = 0, denoised: bool = False):
+    """Render and evaluate (and denoise an image from :func:`with_guides`); return
+    (RGB image as numpy, seconds including the denoiser)."""
     start = time.perf_counter()
     image = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
     dr.eval(image)
     dr.sync_thread()
+    image = np.array(image)
+    image = denoise_guided(image) if denoised else image[..., :3]
     seconds = time.perf_counter() - start
-    return np.array(image), seconds
+    return image, seconds
 
 
 def score(result: RenderResult, reference: np.ndarray | None) -> RenderResult:
@@ -61,43 +85,50 @@ def score(result: RenderResult, reference: np.ndarray | None) -> RenderResult:
         result.rmse = metrics.rmse(img, reference)
         result.luminance_ratio = metrics.luminance_ratio(img, reference)
         result.ciede2000 = metrics.ciede2000(img, reference)
+        result.flip = metrics.flip(img, reference)
+        result.low_frequency = metrics.low_frequency_rel_mse(img, reference, LOW_FREQUENCY_SIGMA)
     return result
 
 
-def render_measured(scene, spec: dict, spp: int, reference=None, label=None, seed=0) -> RenderResult:
+def render_measured(scene, spec: dict, spp: int, reference=None, label=None, seed=0,
+                    denoised: bool = False) -> RenderResult:
     """A 1-spp warm-up render, then the timed render, scored against ``reference``.
 
-    For ``pmic`` the warm-up uses another integrator seed, so that the timed run
-    rebuilds its photon maps and cache (a reused cache would hide their cost).
+    The warm-up uses a separate integrator object, so the timed run rebuilds its
+    photon maps and cache (a reused cache would hide their cost).
     ``compile_s`` is the warm-up's time minus what the timed run's stages would take
     at 1 spp: the cost of compiling kernels on a first run.
     """
-    warm_spec = dict(spec)
-    if spec["type"] == "pmic":
-        warm_spec["seed"] = int(spec.get("seed", 0)) + 1000
-    _, cold_seconds = timed_render(scene, mi.load_dict(warm_spec), 1, seed + 1)
-    integrator = mi.load_dict(dict(spec))
-    image, seconds = timed_render(scene, integrator, spp, seed)
+    run_spec = with_guides(spec) if denoised else dict(spec)
+    # The warm-up is another integrator object, so the timed run still builds its own
+    # photon maps and cache; with the same settings it finds every kernel compiled
+    # (photon and record counts, which depend on the seed, are baked into some).
+    _, cold_seconds = timed_render(scene, mi.load_dict(run_spec), 1, seed + 1, denoised)
+    integrator = mi.load_dict(run_spec)
+    image, seconds = timed_render(scene, integrator, spp, seed, denoised)
     stats = dict(getattr(integrator, "stats", {}) or {})
     render_s = stats.get("time_render", seconds)
     one_spp = seconds - render_s + render_s / spp
     result = RenderResult(label or spec["type"], dict(spec), spp, seconds,
-                          max(0.0, cold_seconds - one_spp), stats=stats, image=image)
+                          max(0.0, cold_seconds - one_spp), denoised=denoised, stats=stats, image=image)
     return score(result, reference)
 
 
-def path_at_equal_time(scene, seconds: float, reference=None, seed=0, max_spp=1 << 16) -> RenderResult:
-    """Mitsuba's ``path`` with the spp that fits in ``seconds`` (measured, not guessed)."""
-    integrator = mi.load_dict(dict(PATH_INTEGRATOR))
-    _, cold = timed_render(scene, integrator, 1, seed + 1)  # compiles the kernel
-    _, probe = timed_render(scene, integrator, 4, seed + 2)
+def path_at_equal_time(scene, seconds: float, reference=None, seed=0, max_spp=1 << 16,
+                       denoised: bool = False) -> RenderResult:
+    """Mitsuba's ``path`` (+ the denoiser) with the spp that fits in ``seconds``
+    (measured, not guessed)."""
+    spec = with_guides(PATH_INTEGRATOR) if denoised else dict(PATH_INTEGRATOR)
+    integrator = mi.load_dict(spec)
+    _, cold = timed_render(scene, integrator, 1, seed + 1, denoised)  # compiles the kernel
+    _, probe = timed_render(scene, integrator, 4, seed + 2, denoised)
     per_spp = max(probe / 4, 1e-6)
     spp = int(max(1, min(max_spp, seconds / per_spp)))
-    image, took = timed_render(scene, integrator, spp, seed)
+    image, took = timed_render(scene, integrator, spp, seed, denoised)
     if abs(took / seconds - 1) > 0.1 and spp < max_spp:
         # The probe's fixed overhead skews the rate: correct once from the real run.
         spp = int(max(1, min(max_spp, spp * seconds / took)))
-        image, took = timed_render(scene, integrator, spp, seed)
+        image, took = timed_render(scene, integrator, spp, seed, denoised)
     result = RenderResult("path", dict(PATH_INTEGRATOR), spp, took, max(0.0, cold - probe / 4),
-                          image=image)
+                          denoised=denoised, image=image)
     return score(result, reference)

@@ -29,6 +29,17 @@ log = logging.getLogger("pmic")
 
 
 # --- Internal tuning constants -------------------------------------------------------
+#: Final gather (estimator "final_gather"): a diffuse vertex behind a traced one reads
+#: the cache only if the segment reaching it is at least this many (weighted mean)
+#: record radii long. A record's radius is the harmonic mean distance of the geometry
+#: its gather saw: nearer than that, the vertex lies in the corner, contact or gap the
+#: record interpolates across, and its error would fill a wide solid angle of the
+#: traced vertex (the blotches of first-hit interpolation). Such vertices are traced
+#: too...
+TRUST_RECORD_RADII = 1.0
+#: ...but at most this many diffuse bounces per camera path: then the cache is read
+#: however close (bounded cost; the error is by then three diffuse bounces deep).
+MAX_TRACED_BOUNCES = 3
 #: Smallest record *reach* (a·R), in units of the global photon lookup radius:
 #: irradiance is only resolved to about one lookup radius, so smaller records add cost,
 #: not detail; and a reach of ~4 photon spacings leaves no gaps between the photons.
@@ -147,6 +158,26 @@ class PMICIntegrator(mi.SamplingIntegrator):
          - ``"pmic"`` (the paper's method), ``"photon_map"`` (radiance estimate at the
            first diffuse hit, the paper's Fig. 5a baseline) or ``"irradiance_cache"``
            (classic view-dependent Ward cache, records placed from the camera).
+       * - ``estimator``
+         - string
+         - ``"final_gather"``
+         - ``pmic`` only. ``"final_gather"``: the first diffuse vertex of a camera path
+           is path-traced (one BSDF sample, MIS with the emitters) and the cache, which
+           then also holds direct light, is read where that ray lands, unless it
+           lands closer than a record radius (corners, contacts, gaps: traced once
+           more, up to 3 times). Its error is noise, which a denoiser removes, and it
+           keeps converging; the cache is view independent. ``"first_hit"``: the
+           paper's interpolation at the first diffuse vertex (less noise at few
+           samples, but record-sized blotches that stay).
+       * - ``aovs``
+         - string
+         - ``""``
+         - Extra output channels, comma-separated (or ``"all"``): ``albedo`` and
+           ``normal`` (the denoiser's guides at the first surface, as Mitsuba's
+           ``aov`` integrator computes them), ``direct``, ``indirect`` (cache and
+           photon map) and ``caustic`` radiance (they add up to the image), and
+           ``coverage`` (1 where the first cache read found a record, 0 where it fell
+           back to the photon map or no cache was read).
        * - ``max_depth``
          - integer
          - -1
@@ -263,7 +294,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
                 f"max_error={self.settings.max_error}, gather_rays={self.settings.gather_rays}]")
 
     def aov_names(self):
-        return []
+        return self.settings.aov_channels
 
     def render(self, scene: mi.Scene, sensor=0, seed=0, spp: int = 0, develop: bool = True,
                evaluate: bool = True):
@@ -437,6 +468,13 @@ class PMICIntegrator(mi.SamplingIntegrator):
             self._cache_builds += 1
         elif self.settings.method == "pmic":
             skipped.append("cache: no global photons")
+        if index is not None and self.settings.final_gather_camera:
+            # What a gather hit reflects is all of its light: records keep their direct
+            # irradiance too, so the camera path needs no shadow rays there.
+            index.direct = cache_mod.direct_irradiance(
+                scene, index.records.position, index.records.normal,
+                cache_mod.RECORD_DIRECT_SAMPLES, self.settings.seed, offset)
+            dr.eval(index.direct)
         dr.sync_thread()
         self._prepared.index = index
         stats["time_cache"] = time.perf_counter() - t0
@@ -563,6 +601,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
         prepared = self._prepared
         if self.settings.method == "photon_map" or prepared.global_map.count == 0:
             return
+        if self.settings.final_gather_camera:
+            # Gather rays see the whole scene, not what this camera sees: the cache
+            # stays view independent (where no record reaches, the photon map is read).
+            return
         t0 = time.perf_counter()
         offset = RAY_OFFSET_DIAGONAL * self._length_scale()
         cam_p, cam_n = self._camera_points(scene, sensor)
@@ -640,30 +682,59 @@ class PMICIntegrator(mi.SamplingIntegrator):
     # ----------------------------------------------------------------------------------
     # Stage 4: camera paths
     # ----------------------------------------------------------------------------------
-    def _indirect_irradiance(self, p, n, depth, active):
-        """Irradiance at a camera vertex from light that bounced before reaching it:
-        indirect diffuse (cache or photon map) plus caustics (caustic map)."""
+    def _depth_limit(self, depth):
+        """Photons completing a path of at most max_depth segments (None: all)."""
+        return None if self.settings.max_depth == -1 else mi.UInt32(self.settings.max_depth) - depth - 1
+
+    def _caustic_irradiance(self, p, n, depth, active):
+        """Irradiance at a camera vertex from light → delta/glossy bounces (caustic map)."""
+        prepared = self._prepared
+        if not prepared.caustic_map.count:
+            return dr.zeros(mi.Color3f, dr.width(p))
+        return estimate_irradiance(prepared.caustic_map, prepared.caustic_grid, p, n,
+                                   prepared.caustic_radius, max_depth=self._depth_limit(depth),
+                                   active=active)
+
+    def _cache_lookup(self, p, n, active):
+        """``(E, covered, R)``: the cache's interpolated irradiance, where records reach
+        (p, n), and their weighted mean radius."""
+        index = self._prepared.index
+        lanes = dr.width(p)
+        if index is None:
+            return dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes), dr.zeros(mi.Float, lanes)
+        return index.interpolate(p, n, active, with_radius=True)
+
+    def _global_irradiance(self, p, n, depth, active, cached=None, covered=None):
+        """Irradiance at a camera vertex from light that bounced off a diffuse surface
+        first: the cache's ``cached`` value where ``covered``, else the global photon
+        map (the method ``photon_map`` reads the map only)."""
         prepared = self._prepared
         lanes = dr.width(p)
-        irradiance = dr.zeros(mi.Color3f, lanes)
-        # Photons completing a path of at most max_depth segments (-1: all).
-        depth_limit = None if self.settings.max_depth == -1 else mi.UInt32(self.settings.max_depth) - depth - 1
-        if prepared.caustic_map.count:
-            irradiance += estimate_irradiance(prepared.caustic_map, prepared.caustic_grid, p, n,
-                                              prepared.caustic_radius, max_depth=depth_limit,
-                                              active=active)
+        depth_limit = self._depth_limit(depth)
         if prepared.global_map.count == 0:
-            return irradiance
+            return dr.zeros(mi.Color3f, lanes)
         if self.settings.method == "photon_map":
-            if not self.settings.final_gather:
-                irradiance += self._photon_estimate(p, n, depth_limit, active)
-            return irradiance
-        cached, covered = prepared.index.interpolate(p, n, active) if prepared.index is not None \
-            else (dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes))
+            if self.settings.final_gather:
+                return dr.zeros(mi.Color3f, lanes)
+            return self._photon_estimate(p, n, depth_limit, active)
+        if cached is None:
+            cached, covered, _ = self._cache_lookup(p, n, active)
         need = mi.Bool(active) & ~covered
         dr.scatter_reduce(dr.ReduceOp.Add, self._fallback_counter, mi.UInt32(1), mi.UInt32(0), need)
         fallback = self._photon_estimate(p, n, depth_limit, need)
-        return irradiance + dr.select(covered, cached, fallback)
+        return dr.select(covered, cached, fallback)
+
+    def _total_irradiance(self, scene, si, n, active, cached, covered):
+        """Final gather: all the irradiance at a trusted vertex, direct light included:
+        the records' where they reach, else the precomputed irradiance of the nearest
+        photon that ``si`` sees (a shadow ray: a photon across a thin wall is not
+        read)."""
+        need = mi.Bool(active) & ~covered
+        dr.scatter_reduce(dr.ReduceOp.Add, self._fallback_counter, mi.UInt32(1), mi.UInt32(0), need)
+        source = self._prepared.gather_source
+        if source is None:
+            return dr.select(covered, cached, 0.0)
+        return dr.select(covered, cached, source.irradiance_at(scene, si, n, need))
 
     def _photon_estimate(self, p, n, depth_limit, active):
         """Global-map estimate of light that bounced at least once (direct light and
@@ -680,6 +751,15 @@ class PMICIntegrator(mi.SamplingIntegrator):
         """One camera path: emission, direct light, indirect light at diffuse lobes from
         the cache (or photon map) and the caustic map, continued through the other lobes.
 
+        With the final-gather estimator the first diffuse vertex is path-traced (its
+        whole BSDF is sampled, its direct light shares samples with that by MIS) and the
+        cache is read at the next diffuse vertex, unless that one is closer than
+        ``TRUST_RECORD_RADII`` record radii (corners, contacts, thin gaps): then it is
+        path-traced too, up to ``MAX_TRACED_BOUNCES``.
+
+        Light that a traced diffuse vertex's caustic-map read already holds (light →
+        delta/glossy bounces → that vertex) is not counted again along the path.
+
         Every contribution is checked on its own (:func:`_finite`): a NaN or Inf from one
         emitter or texel drops that sample only, not the whole camera sample.
         """
@@ -691,12 +771,19 @@ class PMICIntegrator(mi.SamplingIntegrator):
         max_depth = 0xFFFFFFFF if self.settings.max_depth == -1 else self.settings.max_depth
         max_iterations = -1 if self.settings.max_depth == -1 else self.settings.max_depth
         use_indirect = prepared.global_map.count > 0 or prepared.caustic_map.count > 0
-        final_gather = self.settings.method == "photon_map" and self.settings.final_gather and \
+        has_caustic_map = prepared.caustic_map.count > 0
+        photon_map_gather = self.settings.method == "photon_map" and self.settings.final_gather and \
             prepared.global_map.count > 0
+        reads_cache = self.settings.method != "photon_map"
+        gather_first = self.settings.final_gather_camera
+        untrusted_radius = prepared.global_radius  # trust test where no record reaches
         # BSDF sampling of the diffuse lobe for direct light, combined with emitter
         # sampling by MIS: emitter sampling alone is noisy for large emitters (skies).
         diffuse_mis = prepared.info.has_infinite_emitter
         n_em = float(self.settings.direct_samples)
+        aovs = self.settings.aov_list
+        want_direct, want_indirect = "direct" in aovs, "indirect" in aovs
+        want_caustic, want_coverage = "caustic" in aovs, "coverage" in aovs
         del prepared
         ctx_all = mi.BSDFContext()
         ctx_diffuse = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.Diffuse), None)
@@ -714,10 +801,25 @@ class PMICIntegrator(mi.SamplingIntegrator):
             skip = pi.is_valid() & (pi.shape.emitter() != None) & active  # noqa: E711
             si_skip = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, skip)
             pi[skip] = self.skip_area_emitters(scene, si_skip.spawn_ray(ray.d), True, skip)
+        guides = self._guide_aovs(pi, ray, active, aovs)
         prev_si = dr.zeros(mi.SurfaceInteraction3f)
         prev_bsdf_pdf = mi.Float(1.0)
         prev_bsdf_delta = mi.Bool(True)
         valid = mi.Bool(False)
+        traced = mi.UInt32(0)  #: diffuse vertices path-traced so far (final gather)
+        # ``armed``: the last traced diffuse vertex read the caustic map and every vertex
+        # since continued through a delta/glossy lobe; ``crossed``: armed, and at least
+        # one such lobe lies behind. Light reaching the path through a delta/glossy
+        # lobe once armed (emitter samples through this vertex's lobes), or by emission
+        # once crossed, is a caustic that map already holds.
+        armed = mi.Bool(False)
+        crossed = mi.Bool(False)
+        # AOVs (left as width-1 constants when not asked for).
+        L_direct = mi.Spectrum(0.0)
+        L_indirect = mi.Spectrum(0.0)
+        L_caustic = mi.Spectrum(0.0)
+        coverage = mi.Float(0.0)
+        unread = mi.Bool(True)  #: no vertex has read the cache yet (coverage AOV)
 
         # ``self`` is read, not state: its cache arrays must not be loop variables.
         while dr.hint(active, label="pmic_camera_path", max_iterations=max_iterations,
@@ -731,44 +833,97 @@ class PMICIntegrator(mi.SamplingIntegrator):
             ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
             em_pdf = scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta)
             mis = dr.select(prev_bsdf_delta, 1.0, mis_weight(prev_bsdf_pdf, n_em * em_pdf))
-            shown = active
+            shown = active & ~crossed
             if dr.hint(hide_emitters, mode="scalar"):
                 shown &= ~((depth == 0) & ~si.is_valid())
-            L += _finite(β * mis * ds.emitter.eval(si, shown), shown)
+            emitted = _finite(β * mis * ds.emitter.eval(si, shown), shown)
+            L += emitted
 
             active_next = active & si.is_valid() & (depth + 1 < max_depth)
             has_diffuse = mi.has_flag(flags, mi.BSDFFlags.Diffuse)
             mixed = has_diffuse & (mi.has_flag(flags, mi.BSDFFlags.Glossy) |
                                    mi.has_flag(flags, mi.BSDFFlags.Delta))
             separable = lobes_separable(bsdf, si, active_next & mixed)
-
-            # ---- Direct light by emitter sampling ----
-            active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth)
-            direct = self._direct_light(scene, sampler, si, bsdf, active_em, separable,
-                                        diffuse_mis, ctx_all, ctx_diffuse, ctx_rest)
-            L += β * direct
-
-            # ---- Direct light on the diffuse lobe by BSDF sampling (MIS) ----
             lit_diffuse = active_next & has_diffuse & separable
-            if dr.hint(diffuse_mis, mode="scalar"):
-                L += β * self._diffuse_emitter_hit(scene, sampler, si, bsdf, lit_diffuse,
-                                                   ctx_diffuse, n_em)
-
-            # ---- Light that bounced before reaching the diffuse lobe ----
-            cached = lit_diffuse & mi.Bool(use_indirect) & (depth + 3 <= max_depth)
             n = mi.Vector3f(si.n)
             n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
-            irradiance = self._indirect_irradiance(si.p, n, depth, cached)
-            if dr.hint(final_gather, mode="scalar"):
-                irradiance += self._final_gather_ray(scene, sampler, si, n, cached)
-            L += _finite(β * diffuse_response(bsdf, si, cached) * irradiance, cached)
 
-            # ---- Continue through the other lobes (all lobes if inseparable) ----
+            # ---- Where the diffuse lobe reads the cache, and where it is traced ----
+            cache_ok = lit_diffuse & mi.Bool(use_indirect) & (depth + 3 <= max_depth)
+            if dr.hint(gather_first, mode="scalar"):
+                probe = cache_ok & (traced > 0)
+                cached, covered, radius = self._cache_lookup(si.p, n, probe)
+                trusted_radius = dr.select(covered, radius, untrusted_radius)
+                trust = probe & ((si.t >= TRUST_RECORD_RADII * trusted_radius) |
+                                 (traced >= MAX_TRACED_BOUNCES))
+                traced_here = lit_diffuse & ~trust
+            else:
+                trust = mi.Bool(cache_ok)
+                cached, covered, _ = self._cache_lookup(si.p, n, trust & mi.Bool(reads_cache))
+                traced_here = mi.Bool(False)
+
+            # Final gather: a trusted vertex reads all of its light from the cache (the
+            # records hold direct light too; where none reaches, the precomputed
+            # irradiance of the nearest photon it sees is total irradiance): only its
+            # other lobes need emitter samples.
+            from_records = trust & mi.Bool(gather_first)
+            # ---- Direct light by emitter sampling ----
+            active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth) & \
+                ~(from_records & ~mixed)
+            direct = β * self._direct_light(scene, sampler, si, bsdf, active_em, separable,
+                                            traced_here, armed, from_records,
+                                            diffuse_mis, ctx_all, ctx_diffuse, ctx_rest)
+
+            # ---- Direct light on the diffuse lobe by BSDF sampling (MIS) ----
+            if dr.hint(diffuse_mis, mode="scalar"):
+                direct += β * self._diffuse_emitter_hit(
+                    scene, sampler, si, bsdf, lit_diffuse & ~traced_here & ~from_records,
+                    ctx_diffuse, n_em)
+            L += direct
+
+            # ---- Light that bounced before reaching the diffuse lobe ----
+            read_caustic = (trust | traced_here) & mi.Bool(has_caustic_map) & (depth + 3 <= max_depth)
+            if dr.hint(gather_first, mode="scalar"):
+                read_caustic &= ~(trust & ~covered)  # the photon's irradiance has them
+            response = diffuse_response(bsdf, si, trust | read_caustic)
+            caustic = _finite(β * response * self._caustic_irradiance(si.p, n, depth, read_caustic),
+                              read_caustic)
+            if dr.hint(gather_first, mode="scalar"):
+                irradiance = self._total_irradiance(scene, si, n, trust, cached, covered)
+            else:
+                irradiance = self._global_irradiance(si.p, n, depth, trust, cached, covered)
+            if dr.hint(photon_map_gather, mode="scalar"):
+                irradiance += self._final_gather_ray(scene, sampler, si, n, trust)
+            indirect = _finite(β * response * irradiance, trust)
+            L += caustic + indirect
+
+            if dr.hint(want_direct, mode="scalar"):
+                L_direct += emitted + direct
+            if dr.hint(want_indirect, mode="scalar"):
+                L_indirect += indirect
+            if dr.hint(want_caustic, mode="scalar"):
+                L_caustic += caustic
+            if dr.hint(want_coverage, mode="scalar"):
+                first_read = trust & unread
+                coverage[first_read] = dr.select(covered, 1.0, 0.0)
+                unread &= ~first_read
+
+            # ---- Continue through the other lobes (all lobes if inseparable or traced) ----
+            whole = ~separable | traced_here
             u1, u2 = sampler.next_1d(), sampler.next_2d()
-            bs, bsdf_weight = bsdf.sample(ctx_rest, si, u1, u2, active_next & separable)
-            bs_all, weight_all = bsdf.sample(ctx_all, si, u1, u2, active_next & ~separable)
-            bs[~separable] = bs_all
-            bsdf_weight[~separable] = weight_all
+            bs, bsdf_weight = bsdf.sample(ctx_rest, si, u1, u2, active_next & ~whole)
+            bs_all, weight_all = bsdf.sample(ctx_all, si, u1, u2, active_next & whole)
+            bs[whole] = bs_all
+            bsdf_weight[whole] = weight_all
+            sampled_diffuse = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
+            # A traced vertex sampling its diffuse lobe starts a new chain; an
+            # inseparable one (no caustic photon is stored behind it) ends the old one;
+            # any other continues it through a delta/glossy lobe.
+            restart = traced_here & sampled_diffuse
+            ended = active_next & has_diffuse & ~separable
+            crossed = dr.select(restart | ended, False, crossed | armed)
+            armed = dr.select(restart, read_caustic, armed & ~ended)
+            traced[traced_here] = traced + 1
             β *= bsdf_weight
             η *= bs.eta
             prev_si = dr.detach(si, True)
@@ -788,15 +943,34 @@ class PMICIntegrator(mi.SamplingIntegrator):
             depth += 1
             active = active_next
 
-        return L, valid, []
+        values = dict(guides, direct=L_direct, indirect=L_indirect, caustic=L_caustic,
+                      coverage=[coverage])
+        return L, valid, [c for a in aovs for c in values[a]]
 
-    def _direct_light(self, scene, sampler, si, bsdf, active, separable, diffuse_mis,
-                      ctx_all, ctx_diffuse, ctx_rest):
+    @staticmethod
+    def _guide_aovs(pi, ray, active, aovs) -> dict:
+        """The denoiser's guides at the first surface, as Mitsuba's ``aov`` integrator
+        computes them: diffuse reflectance and world-space shading normal (0 where the
+        camera ray meets nothing)."""
+        guides = {}
+        if "albedo" not in aovs and "normal" not in aovs:
+            return guides
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
+        hit = active & si.is_valid()
+        guides["albedo"] = dr.select(hit, si.bsdf(ray).eval_diffuse_reflectance(si, hit), 0.0)
+        guides["normal"] = dr.select(hit, si.sh_frame.n, 0.0)
+        return guides
+
+    def _direct_light(self, scene, sampler, si, bsdf, active, separable, traced, armed,
+                      no_diffuse, diffuse_mis, ctx_all, ctx_diffuse, ctx_rest):
         """Mean of ``direct_samples`` emitter samples (shadow rays) at ``si``.
 
         Separable BSDFs: the diffuse lobe takes emitter samples alone (or shares them by
         MIS with :meth:`_diffuse_emitter_hit`), the other lobes share them with the
-        continuation's BSDF sampling. Inseparable ones share them as a whole.
+        continuation's BSDF sampling. Inseparable ones share them as a whole, and so do
+        traced vertices (whose continuation samples the whole BSDF). Where ``armed``,
+        light through the delta/glossy lobes is left out (a caustic the map holds); where ``no_diffuse``, the diffuse lobe is (cache records hold
+        its direct light).
         """
         n_em = float(self.settings.direct_samples)
 
@@ -806,13 +980,17 @@ class PMICIntegrator(mi.SamplingIntegrator):
             wo = si.to_local(ds.d)
             f_diffuse, pdf_diffuse = bsdf.eval_pdf(ctx_diffuse, si, wo, ok & separable)
             f_rest, pdf_rest = bsdf.eval_pdf(ctx_rest, si, wo, ok & separable)
-            f_all, pdf_all = bsdf.eval_pdf(ctx_all, si, wo, ok & ~separable)
+            f_all, pdf_all = bsdf.eval_pdf(ctx_all, si, wo, ok & (~separable | traced))
+            # The pdf with which the continuation would sample this direction.
+            pdf_rest = dr.select(separable & ~traced, pdf_rest, pdf_all)
+            pdf_diffuse = dr.select(traced, pdf_all, pdf_diffuse)
             f_rest = dr.select(separable, f_rest, f_all)
-            pdf_rest = dr.select(separable, pdf_rest, pdf_all)
-            f_diffuse = dr.select(separable, f_diffuse, 0.0)
+            f_rest = dr.select(separable & armed, 0.0, f_rest)
+            f_diffuse = dr.select(separable & ~no_diffuse, f_diffuse, 0.0)
             em_pdf = n_em * ds.pdf
             w_rest = dr.select(ds.delta, 1.0, mis_weight(em_pdf, pdf_rest))
-            w_diffuse = dr.select(ds.delta, 1.0, mis_weight(em_pdf, pdf_diffuse)) if diffuse_mis else 1.0
+            w_diffuse = dr.select(ds.delta | ~(traced | diffuse_mis), 1.0,
+                                  mis_weight(em_pdf, pdf_diffuse))
             return _finite(em_weight * (f_diffuse * w_diffuse + f_rest * w_rest), ok)
 
         if self.settings.direct_samples == 1:

@@ -13,6 +13,7 @@ visible colour difference after a fixed display transform.
 """
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -108,6 +109,43 @@ def ciede2000(img, ref) -> float:
     return float(np.mean(delta))
 
 
+def gaussian_blur(img, sigma: float) -> np.ndarray:
+    """Separable Gaussian blur (truncated at 3σ, edges mirrored) of an H x W x C image."""
+    a = _as_image(img)
+    if sigma <= 0:
+        return a
+    radius = max(1, int(math.ceil(3 * sigma)))
+    taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+    taps /= taps.sum()
+    for axis in (0, 1):
+        pad = [(0, 0)] * a.ndim
+        pad[axis] = (radius, radius)
+        padded = np.pad(a, pad, mode="symmetric")
+        n = a.shape[axis]
+        a = sum(w * np.take(padded, np.arange(k, k + n), axis=axis) for k, w in enumerate(taps))
+    return a
+
+
+def low_frequency_rel_mse(img, ref, sigma: float = 4.0, eps: float = 1e-2) -> float:
+    """relMSE of both images blurred by a Gaussian of ``sigma`` pixels: the structured
+    (blotchy) error that the eye sees and a denoiser cannot remove; pixel noise
+    averages away under the blur."""
+    a, b = _pair(img, ref)
+    return rel_mse(gaussian_blur(a, sigma), gaussian_blur(b, sigma), eps)
+
+
+def flip(img, ref) -> float:
+    """Mean FLIP error (NVIDIA's ꟻLIP, PyPI ``flip-evaluator``), LDR, after
+    :func:`tonemap_srgb`: 0 identical, 1 most different."""
+    a, b = _pair(img, ref)
+    import flip_evaluator
+
+    _, mean, _ = flip_evaluator.evaluate(np.ascontiguousarray(tonemap_srgb(b), dtype=np.float32),
+                                         np.ascontiguousarray(tonemap_srgb(a), dtype=np.float32),
+                                         "LDR", inputsRGB=True, applyMagma=False)
+    return float(mean)
+
+
 def finite(img) -> bool:
     """True when no pixel is NaN or infinite."""
     return bool(np.all(np.isfinite(_as_image(img))))
@@ -121,5 +159,8 @@ __all__ = [
     "luminance_ratio",
     "tonemap_srgb",
     "ciede2000",
+    "gaussian_blur",
+    "low_frequency_rel_mse",
+    "flip",
     "finite",
 ]

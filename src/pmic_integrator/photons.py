@@ -135,9 +135,10 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         bsdf = si.bsdf(ray)
         flags = bsdf.flags()
         has_diffuse = valid & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
-        store = has_diffuse
+        # A new array: ``&=`` on Dr.Jit arrays is in place, and has_diffuse is read below.
+        store = mi.Bool(has_diffuse)
         if kind == CAUSTIC:
-            store &= specular_so_far & (bounce >= 2)
+            store = store & specular_so_far & (bounce >= 2)
         # Orient the normal towards the side the photon arrived from, so that lookups
         # from the other side of a thin wall reject it.
         n = mi.Vector3f(si.n)

@@ -14,6 +14,17 @@ import math
 from dataclasses import dataclass, fields
 
 METHODS = ("pmic", "photon_map", "irradiance_cache")
+#: How ``pmic`` uses its cache at a camera path's diffuse vertices.
+ESTIMATORS = ("final_gather", "first_hit")
+#: Extra images (AOVs) ``pmic`` can output, in this channel order.
+AOVS = {
+    "albedo": ("albedo.R", "albedo.G", "albedo.B"),
+    "normal": ("normal.X", "normal.Y", "normal.Z"),
+    "direct": ("direct.R", "direct.G", "direct.B"),
+    "indirect": ("indirect.R", "indirect.G", "indirect.B"),
+    "caustic": ("caustic.R", "caustic.G", "caustic.B"),
+    "coverage": ("coverage",),
+}
 
 # --- Limits, with the reason for each -------------------------------------------------
 #: Photons per map: about 150 bytes each with their grids (README, Results), so 5e7
@@ -93,6 +104,8 @@ class Settings:
     max_photon_paths: int = 0
     direct_samples: int = 4
     seed: int = 0
+    estimator: str = "final_gather"
+    aovs: str = ""
 
     @staticmethod
     def parse(props) -> "Settings":
@@ -137,6 +150,30 @@ class Settings:
                   self.max_photon_paths)
         in_range("direct_samples", *DIRECT_SAMPLES_RANGE)
         in_range("seed", 0, 2**32 - 1)
+        if self.estimator not in ESTIMATORS:
+            _fail("estimator", f"one of {', '.join(ESTIMATORS)}", self.estimator)
+        self.aov_list  # noqa: B018 (parses, and refuses an unknown name)
+
+    @property
+    def aov_list(self) -> tuple[str, ...]:
+        """The AOVs asked for, in :data:`AOVS` order ("all": every one)."""
+        asked = [a.strip() for a in self.aovs.split(",") if a.strip()]
+        if asked == ["all"]:
+            return tuple(AOVS)
+        for name in asked:
+            if name not in AOVS:
+                _fail("aovs", f"a comma-separated list of {', '.join(AOVS)} (or 'all')", self.aovs)
+        return tuple(a for a in AOVS if a in asked)
+
+    @property
+    def aov_channels(self) -> list[str]:
+        return [c for a in self.aov_list for c in AOVS[a]]
+
+    @property
+    def final_gather_camera(self) -> bool:
+        """Camera paths path-trace their first diffuse bounce and read the cache one
+        bounce later (method pmic, estimator final_gather)."""
+        return self.method == "pmic" and self.estimator == "final_gather"
 
     @property
     def gather_strata(self) -> tuple[int, int]:
@@ -149,7 +186,7 @@ class Settings:
         direct_samples, which only the camera pass reads)."""
         return (self.method, self.max_depth, self.global_photons, self.caustic_photons,
                 self.lookup_size, self.lookup_radius, self.max_error, self.gather_rays,
-                self.final_gather, self.max_photon_paths, self.seed)
+                self.final_gather, self.max_photon_paths, self.seed, self.final_gather_camera)
 
 
 def check_against_scene(settings: Settings, surface_area: float, diagonal: float) -> None:
