@@ -41,8 +41,8 @@ def main(argv=None):
     args = parser.parse_args(argv)
     mi.set_variant("llvm_ad_rgb")
     from pmic_integrator import scenes
-    from pmic_integrator.integrator import SceneInfo, _sorted_map
-    from pmic_integrator.irradiance import lookup_radius, precompute_irradiance
+    from pmic_integrator.integrator import SceneInfo
+    from pmic_integrator.irradiance import lookup_radius, precompute_irradiance, sort_into_grid
     from pmic_integrator.photons import GLOBAL, trace_photons
 
     scene = scenes.load_scene("cornell_box", resolution=128, spp=4)
@@ -54,9 +54,9 @@ def main(argv=None):
         for rep in range(args.repeats):
             photons, t_trace = timed(lambda: trace_photons(scene, GLOBAL, count, -1, rep + 1, 1 << 40))
             radius = lookup_radius(info.surface_area, photons.count, 64)
-            (photons, grid), t_build = timed(lambda: _sorted_map(photons, radius))
-            timed(lambda: precompute_irradiance(photons, grid, radius))  # warm-up, finished
-            _, t_pre = timed(lambda: precompute_irradiance(photons, grid, radius))
+            (photons, grid), t_build = timed(lambda: sort_into_grid(photons, radius, 64))
+            timed(lambda: precompute_irradiance(photons, radius, 64, None))  # warm-up, finished
+            _, t_pre = timed(lambda: precompute_irradiance(photons, radius, 64, None))
             traces.append(t_trace), builds.append(t_build), pres.append(t_pre)
         row = {"photons": count, "paths_emitted": photons.paths_emitted,
                "trace_s": statistics.median(traces),

@@ -10,6 +10,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import time
 import json
 import sys
 from pathlib import Path
@@ -135,6 +136,39 @@ def main(argv=None) -> int:
         {"scene": args.scene, "resolution": args.resolution, "variant": args.variant,
          "results": [r.row() for r in results]}, indent=2, default=str))
     print(f"images and results.json written to {out.resolve()}")
+    return 0
+
+
+def render_views_main(argv=None) -> int:
+    """``pmic-render-views scene.xml``: every sensor (or ``--sensors``) from one cache, on
+    a local Dask cluster or ``--scheduler``; EXR images into ``--output``."""
+    parser = argparse.ArgumentParser(
+        prog="pmic-render-views",
+        description="Build pmic's cache of a scene once and render many of its sensors from it "
+                    "on Dask (a local cluster, or --scheduler ADDRESS).")
+    parser.add_argument("scene", type=Path, help="Mitsuba XML scene file")
+    parser.add_argument("--sensors", type=int, nargs="+", default=None, help="sensor indices (default: all)")
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--set", action="append", metavar="NAME=VALUE", help="a pmic parameter (repeatable)")
+    parser.add_argument("--cache-file", type=Path, default=None, help="reuse or keep the cache here")
+    parser.add_argument("--scheduler", default=None, help="address of a Dask scheduler")
+    parser.add_argument("--workers", type=int, default=1, help="local cluster: worker processes")
+    parser.add_argument("--output", type=Path, default=Path("pmic-views"))
+    parser.add_argument("--variant", default="llvm_ad_rgb")
+    args = parser.parse_args(argv)
+    from pmic_integrator import scenes
+    from pmic_integrator.views import render_views
+
+    start = time.perf_counter()
+    images = render_views(args.scene, args.sensors, args.spp, args.seed, _parse_settings(args.set),
+                          args.cache_file, args.scheduler, n_workers=args.workers, variant=args.variant)
+    args.output.mkdir(parents=True, exist_ok=True)
+    for sensor, image in images.items():
+        scenes.write_exr(args.output / f"{args.scene.stem}_sensor{sensor}.exr", image[..., :3])
+    seconds = time.perf_counter() - start
+    print(f"{len(images)} views in {seconds:.1f} s ({len(images) / seconds:.2f} views/s), "
+          f"written to {args.output.resolve()}")
     return 0
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import os
+import re
 import threading
 import time
 from dataclasses import dataclass, field
@@ -21,7 +23,7 @@ from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
 from .gather import VISIBILITY_LIFT, GatherSource, trace_gather_rays
 from .hashgrid import BallGrid, PointGrid, PointGridPyramid
 from .irradiance import (adapted_lookup_radius, estimate_irradiance, lookup_radius,
-                         precompute_irradiance)
+                         precompute_irradiance, sort_into_grid as _sorted_map)
 from .photons import CAUSTIC, GLOBAL, PhotonMap, trace_photons
 from .settings import METHODS, Settings, check_against_scene  # noqa: F401 (METHODS re-exported)
 
@@ -178,6 +180,14 @@ class PMICIntegrator(mi.SamplingIntegrator):
            photon map) and ``caustic`` radiance (they add up to the image), and
            ``coverage`` (1 where the first cache read found a record, 0 where it fell
            back to the photon map or no cache was read).
+       * - ``cache_file``
+         - string
+         - ``""``
+         - A ``.npz`` file holding the photon maps and cache: loaded if it exists
+           (after checking it was built for this scene and these settings: an error
+           otherwise), else built and written there. Also ``save_cache(path)`` and
+           ``build_cache(scene)``. With ``first_hit``, the records a rendered view
+           added are saved too.
        * - ``max_depth``
          - integer
          - -1
@@ -334,27 +344,77 @@ class PMICIntegrator(mi.SamplingIntegrator):
     # ----------------------------------------------------------------------------------
     @staticmethod
     def _scene_fingerprint(scene: mi.Scene) -> str:
-        """Digest of the scene's parameters, so that an edited scene is rebuilt."""
-        digest = hashlib.blake2b(digest_size=16)
+        """Digest of the scene's parameters, so that an edited scene is rebuilt and a
+        cache file is only read for its own scene. Stable across processes: unnamed
+        objects' keys (``object_<address>``) are normalised and entries sorted."""
         params = mi.traverse(scene)
-        for key in sorted(params.keys()):
+        entries = []
+        for key in params.keys():
             try:
                 value = params[key]
             except Exception:  # pragma: no cover - unreadable parameters are skipped
                 continue
-            digest.update(key.encode())
             if dr.is_array_v(value):
-                digest.update(np.ascontiguousarray(np.array(value)).tobytes())
+                data = np.ascontiguousarray(np.array(value)).tobytes()
             else:
-                digest.update(repr(value).encode())
+                data = repr(value).encode()
+            entries.append((re.sub(r"object_\d+", "object", key).encode(), data))
+        digest = hashlib.blake2b(digest_size=16)
+        for name, data in sorted(entries):
+            digest.update(name)
+            digest.update(len(data).to_bytes(8, "little"))
+            digest.update(data)
         return digest.hexdigest()
+
+    def build_cache(self, scene: mi.Scene) -> dict:
+        """Run the view-independent stages (photons, precomputed irradiance, cache) for
+        ``scene`` now, instead of at the first render; returns their statistics."""
+        with self._render_lock:
+            try:
+                self._prepare_scene(scene)
+            except BaseException:
+                self._prepared = None
+                raise
+            return dict(self._prepared.stats)
+
+    def save_cache(self, path) -> str:
+        """Write the photon maps and the cache built for the last scene to ``path``
+        (``.npz``; see :mod:`pmic_integrator.cachefile`). Load it with the
+        ``cache_file`` parameter, in this or another process."""
+        from . import cachefile
+
+        with self._render_lock:
+            prepared = self._prepared
+            if prepared is None:
+                raise ValueError("save_cache: nothing to save yet: render the scene or call "
+                                 "build_cache(scene) first")
+            return str(cachefile.save(path, prepared, prepared.key[2], prepared.key[1]))
 
     def _prepare_scene(self, scene: mi.Scene):
         key = (id(scene), self.settings.key(), self._scene_fingerprint(scene))
         if self._prepared is not None and self._prepared.key == key:
             return
-        info = SceneInfo.of(scene)
         self._scene_ref = scene
+        cache_file = self.settings.cache_file
+        if cache_file and os.path.exists(cache_file):
+            from . import cachefile
+
+            t0 = time.perf_counter()
+            prepared = cachefile.load(cache_file, scene, key[2], key[1])
+            prepared.key = key
+            prepared.stats["cache_loaded_from"] = cache_file
+            prepared.stats["time_cache_load"] = time.perf_counter() - t0
+            self._prepared = prepared
+            return
+        self._build_prepared(scene, key)
+        if cache_file:
+            from . import cachefile
+
+            cachefile.save(cache_file, self._prepared, key[2], key[1])
+            self._prepared.stats["cache_saved_to"] = cache_file
+
+    def _build_prepared(self, scene: mi.Scene, key: tuple):
+        info = SceneInfo.of(scene)
         check_against_scene(self.settings, info.surface_area, info.diagonal)
         skipped = []
         stats = {}
@@ -1063,15 +1123,6 @@ def _inside_any(grid: BallGrid, points: mi.Point3f) -> mi.Bool:
     return grid.for_each_ball(points, dr.zeros(mi.Bool, dr.width(points.x)),
                               lambda hit, index, valid: hit | valid, finished=lambda hit: hit,
                               label="inside_any_ball")
-
-
-def _sorted_map(photons: PhotonMap, radius: float, per_estimate: float):
-    """Build the map's grid pyramid and reorder the photons into its order, so that a
-    lookup reads neighbouring memory instead of jumping across the whole map."""
-    if photons.count == 0:
-        return photons, None
-    grid, order = PointGridPyramid.build(photons.position, radius, per_estimate)
-    return photons.select(order), grid
 
 
 def _progress(kind, stored, target, emitted):

@@ -264,3 +264,14 @@ def nearest_photon(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
     best_d2, best = grid.for_each_neighbor(query_p, radius, init, visit, active=active,
                                            label="nearest_photon", with_offset=True, octant=octant)
     return best, dr.isfinite(best_d2)
+
+
+def sort_into_grid(photons, radius: float, per_estimate: float):
+    """``(photons reordered, PointGridPyramid)``: the map's grid pyramid for estimates
+    of about ``per_estimate`` photons within ``radius``, and the photons in its order,
+    so that a lookup reads neighbouring memory instead of jumping across the map.
+    An empty map gives ``(photons, None)``."""
+    if photons.count == 0:
+        return photons, None
+    grid, order = PointGridPyramid.build(photons.position, radius, per_estimate)
+    return photons.select(order), grid

@@ -106,6 +106,7 @@ class Settings:
     seed: int = 0
     estimator: str = "final_gather"
     aovs: str = ""
+    cache_file: str = ""
 
     @staticmethod
     def parse(props) -> "Settings":

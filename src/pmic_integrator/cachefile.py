@@ -1,0 +1,146 @@
+"""Saving and loading a prepared scene (photon maps, grids, precomputed irradiance and
+the irradiance cache) as one ``.npz`` file.
+
+The format is NumPy's ``.npz`` (a zip of ``.npy`` arrays), read with
+``allow_pickle=False``: nothing in it can run code. One JSON entry, ``meta``, says what
+the arrays are: the format name and version, pmic's version, the fingerprint of the
+scene the cache was built for and the settings it was built with, and for every
+dataclass the project writes (``PreparedScene`` and what it holds) the class and
+field of each array, so that it is rebuilt exactly as it was saved, bit for bit, with
+no recomputation. The Mitsuba scene itself is not saved: a loaded cache is attached to
+the scene it is loaded for, after checking that its fingerprint matches.
+
+Errors (``ValueError``, naming the file): not a pmic cache, a newer or older format,
+another scene, other settings, a truncated or corrupt file.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import zipfile
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+FORMAT = "pmic-cache"
+VERSION = 1
+
+#: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
+_ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
+                "Vector3u", "Point2f", "UInt64")
+
+
+class CacheFileError(ValueError):
+    """A cache file that cannot be used here (the message names the file and why)."""
+
+
+def _classes():
+    from .cache import CacheRecords, RecordIndex
+    from .gather import GatherSource
+    from .hashgrid import BallGrid, PointGrid, PointGridPyramid
+    from .integrator import PreparedScene, SceneInfo
+    from .photons import PhotonMap
+
+    return {c.__name__: c for c in (CacheRecords, RecordIndex, GatherSource, BallGrid, PointGrid,
+                                    PointGridPyramid, PreparedScene, SceneInfo, PhotonMap)}
+
+
+def _flatten(obj, name: str, arrays: dict):
+    """A JSON description of ``obj``; its Dr.Jit arrays go into ``arrays``."""
+    if obj is None:
+        return {"kind": "none"}
+    if isinstance(obj, mi.Scene):
+        return {"kind": "scene"}
+    if dataclasses.is_dataclass(obj):
+        return {"kind": "dataclass", "class": type(obj).__name__,
+                "fields": {f.name: _flatten(getattr(obj, f.name), f"{name}.{f.name}", arrays)
+                           for f in dataclasses.fields(obj)}}
+    if dr.is_array_v(obj):
+        type_name = next((t for t in _ARRAY_TYPES if getattr(mi, t, None) is type(obj)), None)
+        if type_name is None:
+            raise TypeError(f"save_cache: cannot store a {type(obj).__name__} ({name})")
+        arrays[name] = np.array(obj)
+        return {"kind": "array", "type": type_name, "key": name}
+    if isinstance(obj, (tuple, list)):
+        return {"kind": type(obj).__name__,
+                "items": [_flatten(v, f"{name}[{i}]", arrays) for i, v in enumerate(obj)]}
+    if isinstance(obj, dict):
+        return {"kind": "json", "value": json.loads(json.dumps(obj, default=str))}
+    if isinstance(obj, (bool, int, float, str)):
+        return {"kind": "scalar", "value": obj}
+    raise TypeError(f"save_cache: cannot store {type(obj).__name__} ({name})")
+
+
+def _build(desc, arrays, scene, classes):
+    kind = desc["kind"]
+    if kind == "none":
+        return None
+    if kind == "scene":
+        return scene
+    if kind == "scalar":
+        return desc["value"]
+    if kind == "json":
+        return desc["value"]
+    if kind in ("tuple", "list"):
+        items = [_build(d, arrays, scene, classes) for d in desc["items"]]
+        return tuple(items) if kind == "tuple" else items
+    if kind == "array":
+        array_type = getattr(mi, desc["type"])
+        value = arrays[desc["key"]]
+        out = array_type(value) if value.ndim == 1 else array_type(*[np.ascontiguousarray(c) for c in value])
+        return out
+    if kind == "dataclass":
+        cls = classes[desc["class"]]
+        return cls(**{k: _build(v, arrays, scene, classes) for k, v in desc["fields"].items()})
+    raise ValueError(f"unknown entry kind {kind!r}")
+
+
+def save(path, prepared, fingerprint: str, settings_key: tuple) -> Path:
+    """Write ``prepared`` (a ``PreparedScene``) to ``path`` (``.npz``)."""
+    from . import __version__
+
+    path = Path(path)
+    arrays: dict = {}
+    body = _flatten(prepared, "prepared", arrays)
+    meta = {"format": FORMAT, "version": VERSION, "pmic_version": __version__,
+            "fingerprint": fingerprint, "settings": repr(settings_key), "body": body}
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    with open(path, "wb") as f:  # np.savez would append .npz to a name without it
+        np.savez(f, **arrays)
+    return path
+
+
+def load(path, scene, fingerprint: str, settings_key: tuple):
+    """Read a ``PreparedScene`` from ``path`` for ``scene``; ValueError if the file is
+    not a pmic cache of this format, of this scene and these settings, or is damaged."""
+    path = Path(path)
+    where = f"cache_file '{path}'"
+    if not path.is_file():
+        raise CacheFileError(f"{where}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(bytes(data["meta"]).decode())
+            if meta.get("format") != FORMAT:
+                raise CacheFileError(f"{where} is not a pmic cache (format {meta.get('format')!r})")
+            if meta.get("version") != VERSION:
+                raise CacheFileError(f"{where} has format version {meta.get('version')!r}; this pmic "
+                                     f"reads version {VERSION} (rebuild the cache)")
+            if meta["fingerprint"] != fingerprint:
+                raise CacheFileError(f"{where} was built for another scene (or an edited one): "
+                                     f"fingerprint {meta['fingerprint']}, this scene's is {fingerprint}")
+            if meta["settings"] != repr(settings_key):
+                raise CacheFileError(f"{where} was built with other settings: {meta['settings']}, "
+                                     f"these are {settings_key!r}")
+            arrays = {k: data[k] for k in data.files if k != "meta"}
+    except CacheFileError:
+        raise
+    except (OSError, KeyError, EOFError, ValueError, zipfile.BadZipFile, UnicodeDecodeError) as error:
+        # (json.JSONDecodeError is a ValueError; so is NumPy's refusal of pickled data.)
+        raise CacheFileError(f"{where} is corrupt or truncated ({type(error).__name__}: {error})") from error
+    try:
+        prepared = _build(meta["body"], arrays, scene, _classes())
+    except (KeyError, TypeError, ValueError, RuntimeError) as error:
+        raise CacheFileError(f"{where} is corrupt ({type(error).__name__}: {error})") from error
+    return prepared
