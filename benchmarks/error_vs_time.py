@@ -66,9 +66,24 @@ PMIC_LADDER = {
         {"global_photons": 50_000, "max_error": 0.6, "gather_rays": 128, "spp": 8},
     ],
 }
-#: The four curves: (label, integrator, denoised).
+#: The paper's first-hit interpolation (estimator "first_hit"): its error is mostly
+#: the cache's, so the ladder grows the cache with the spp.
+FIRST_HIT_LADDER = {
+    "full": [
+        {"estimator": "first_hit", "global_photons": 100_000, "max_error": 0.6, "gather_rays": 256,
+         "spp": 8, "direct_samples": 1},
+        {"estimator": "first_hit", "global_photons": 200_000, "max_error": 0.5, "gather_rays": 256, "spp": 16},
+        {"estimator": "first_hit", "global_photons": 200_000, "max_error": 0.4, "gather_rays": 512, "spp": 32},
+        {"estimator": "first_hit", "global_photons": 400_000, "max_error": 0.3, "gather_rays": 1024, "spp": 64},
+    ],
+    "quick": [{"estimator": "first_hit", "global_photons": 20_000, "max_error": 0.8, "gather_rays": 64,
+               "spp": 4}],
+}
+#: The curves: (label, integrator, denoised). "pmic" is the default estimator (final
+#: gather); the paper's first-hit estimator is shown beside it.
 CURVES = (("path", "path", False), ("path+OIDN", "path", True),
-          ("pmic", "pmic", False), ("pmic+OIDN", "pmic", True))
+          ("pmic", "pmic", False), ("pmic+OIDN", "pmic", True),
+          ("pmic-first-hit", "first_hit", False), ("pmic-first-hit+OIDN", "first_hit", True))
 #: Crops shown for each method (fractions of the image: y0, y1, x0, x1).
 CROPS = {"cornell_box": {"light gap": (0.0, 0.14, 0.33, 0.67),
                          "contact shadow": (0.70, 0.92, 0.18, 0.48)},
@@ -113,6 +128,8 @@ def run_scene(name, resolution, mode, log):
         if kind == "path":
             spec = dict(compare.PATH_INTEGRATOR)
             ladder = [{"spp": spp} for spp in (PATH_DENOISED_SPP if denoised else PATH_SPP)[mode]]
+        elif kind == "first_hit":
+            spec, ladder = {"type": "pmic"}, FIRST_HIT_LADDER[mode]
         else:
             spec, ladder = {"type": "pmic"}, PMIC_LADDER[mode]
         for setting in ladder:
@@ -123,7 +140,7 @@ def run_scene(name, resolution, mode, log):
             s = r.stats
             stages = (f"  (photons {s.get('time_photons', 0):.2f} precompute {s.get('time_precompute', 0):.2f} "
                       f"cache {s.get('time_cache', 0):.2f} render {s.get('time_render', 0):.2f} s, "
-                      f"{s.get('records', 0)} records)") if kind == "pmic" else ""
+                      f"{s.get('records', 0)} records)") if kind != "path" else ""
             log(f"  {label:9s} {setting}  {r.seconds:7.2f} s  relMSE {r.rel_mse:.2e}  "
                 f"FLIP {r.flip:.3f}  low-freq {r.low_frequency:.2e}  lum {r.luminance_ratio:.4f}{stages}")
             save_crops(name, label, r, resolution)
@@ -203,7 +220,8 @@ def plot(name, rows, path_png, resolution):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.5, 4))
-    for label, style in (("path", "o-"), ("path+OIDN", "o--"), ("pmic", "s-"), ("pmic+OIDN", "s--")):
+    for label, style in (("path", "o-"), ("path+OIDN", "o--"), ("pmic", "s-"), ("pmic+OIDN", "s--"),
+                         ("pmic-first-hit", "^-"), ("pmic-first-hit+OIDN", "^--")):
         pts = sorted((r.seconds, r.rel_mse) for r in rows if r.label == label)
         ax.plot([p[0] for p in pts], [p[1] for p in pts], style, label=label)
     for target in TARGETS:
@@ -242,6 +260,9 @@ def write_outputs(results, out: Path, stem: str):
         noise = data["reference_noise_rel_mse"]
         data["speedup"] = ups = speedups(rows)
         data["speedup_denoised"] = ups_dn = speedups(rows, ours="pmic+OIDN", theirs="path+OIDN")
+        data["speedup_first_hit"] = ups_fh = speedups(rows, ours="pmic-first-hit", theirs="path")
+        data["speedup_first_hit_denoised"] = ups_fh_dn = speedups(rows, ours="pmic-first-hit+OIDN",
+                                                                  theirs="path+OIDN")
         data["speedup_noise_corrected"] = corrected = speedups(rows, noise)
         plot(name, rows, out / f"{stem}_{name}.png", resolution)
         md += [f"## {name}", "", "| method | settings | spp | time [s] | compile [s] | relMSE | FLIP | "
@@ -258,10 +279,18 @@ def write_outputs(results, out: Path, stem: str):
             c, d = corrected[target], ups_dn[target]
             md.append(f"| {target} | {fmt(d['path_s'])} | {fmt(d['pmic_s'])} | {sp(d)} | "
                       f"{fmt(v['path_s'], v['path_extrapolated'])} | {fmt(v['pmic_s'])} | {sp(v)} | {sp(c)} |")
+        md += ["", "The paper's first-hit estimator (`estimator=first_hit`):", "",
+               "| relMSE target | path+OIDN [s] | first-hit+OIDN [s] | speed-up | path [s] | first-hit [s] | speed-up |",
+               "|---|---|---|---|---|---|---|"]
+        for target, v in ups_fh.items():
+            d = ups_fh_dn[target]
+            md.append(f"| {target} | {fmt(d['path_s'])} | {fmt(d['pmic_s'])} | {sp(d)} | "
+                      f"{fmt(v['path_s'], v['path_extrapolated'])} | {fmt(v['pmic_s'])} | {sp(v)} |")
         md += ["", f"![{name}]({stem}_{name}.png)", ""]
         if (out / f"{stem}_{name}_crops.png").exists():
             md += [f"![{name} crops]({stem}_{name}_crops.png)", ""]
-        print(name, "raw", json.dumps(ups), "denoised", json.dumps(ups_dn), flush=True)
+        print(name, "raw", json.dumps(ups), "denoised", json.dumps(ups_dn), "first-hit",
+              json.dumps(ups_fh), "first-hit denoised", json.dumps(ups_fh_dn), flush=True)
     (out / f"{stem}.json").write_text(json.dumps(results, indent=2, default=str))
     (out / f"{stem}.md").write_text("\n".join(md) + "\n")
     with open(out / f"{stem}.csv", "w", newline="") as f:

@@ -124,7 +124,7 @@ def test_final_gather_is_view_independent():
     """Two sensors: each view's image is bit-identical whatever was rendered before it
     (no per-view records or clamping)."""
     def two_views():
-        d = cornell()
+        d = cornell(estimator="final_gather")
         d["sensor2"] = dict(d["sensor"])
         d["sensor2"]["to_world"] = mi.ScalarTransform4f().look_at(origin=[0.5, 0.2, 3.5],
                                                                 target=[0, 0, 0], up=[0, 1, 0])
@@ -145,7 +145,7 @@ def test_final_gather_counts_caustics_once():
     """The caustic map is read at the traced vertex; light reaching it through the glass
     again along the path is not added (it would be +several % on the caustic floor)."""
     reference = scenes.load_reference("cornell_caustics", 128)
-    scene = scenes.load_scene("cornell_caustics", 128, 16, {"type": "pmic"})
+    scene = scenes.load_scene("cornell_caustics", 128, 16, {"type": "pmic", "estimator": "final_gather"})
     image = np.array(mi.render(scene, spp=16))
     assert abs(metrics.luminance_ratio(image, reference) - 1) < 0.01
 

@@ -15,7 +15,7 @@ SPP = 64  # the scenes' own default sample count
 #: The configurations tested: pmic's default (final gather), the paper's first-hit
 #: interpolation, and the two baselines.
 CONFIGS = {
-    "pmic": {"method": "pmic"},
+    "pmic": {"method": "pmic", "estimator": "final_gather"},
     "pmic_first_hit": {"method": "pmic", "estimator": "first_hit"},
     "irradiance_cache": {"method": "irradiance_cache"},
     "photon_map": {"method": "photon_map"},
