@@ -1,0 +1,112 @@
+"""Views per second from one view-independent cache, against rebuilding per view and
+against the classic camera-seeded cache (``method=irradiance_cache``, records placed
+from each camera).
+
+A Cornell box with ``--views`` sensors on a circle, 256² at 16 spp each:
+  * ``pmic, one cache``: one integrator; the cache is built at the first view and reused;
+  * ``pmic, rebuilt per view``: a new integrator per view (what a farm without cache files does);
+  * ``irradiance_cache``: the view-dependent cache, rebuilt for every view by design;
+  * ``pmic on Dask``: ``views.render_views`` on a LocalCluster (``--workers``), the cache
+    built once and shipped as bytes (its time includes starting the cluster).
+Every configuration renders once untimed first (kernel compilation). Writes
+``benchmarks/results/views.json`` and ``.md``.
+
+    python benchmarks/views.py --views 6
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import pmic_integrator  # noqa: F401  (LLVM set-up before Mitsuba)
+import mitsuba as mi
+import numpy as np
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+SENSOR = """<sensor type="perspective"><float name="fov" value="39.3"/>
+    <transform name="to_world"><lookat origin="{x:.4f}, 0.0, {z:.4f}" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <sampler type="independent"><integer name="sample_count" value="16"/></sampler>
+    <film type="hdrfilm"><integer name="width" value="{res}"/><integer name="height" value="{res}"/>
+        <rfilter type="box"/></film></sensor>"""
+
+
+def scene_file(folder: Path, views: int, res: int) -> Path:
+    """The bundled Cornell box with ``views`` sensors looking in from the open side."""
+    from pmic_integrator import scenes
+
+    text = scenes.scene_path("cornell_box").read_text()
+    sensors = "".join(SENSOR.format(x=3.9 * math.sin(a), z=3.9 * math.cos(a), res=res)
+                      for a in np.linspace(-0.35, 0.35, views))
+    start, end = text.index("<sensor"), text.index("</sensor>") + len("</sensor>")
+    path = folder / "cornell_views.xml"
+    text = text[:start] + sensors + text[end:]
+    path.write_text(text)
+    # Relative references (meshes, textures) keep working next to the original file.
+    return path
+
+
+def timed(fn):
+    start = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - start
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--views", type=int, default=6)
+    parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    mi.set_variant("llvm_ad_rgb")
+    from pmic_integrator.views import render_views
+
+    folder = Path(tempfile.mkdtemp())
+    path = scene_file(folder, args.views, args.resolution)
+    scene = mi.load_file(str(path))
+    views = range(args.views)
+    rows = {}
+
+    def render_all(make, reuse):
+        integrator = make()
+        for v in views:
+            if not reuse:
+                integrator = make()
+            image = mi.render(scene, integrator=integrator, sensor=v, spp=args.spp, seed=v)
+            np.array(image)
+
+    configs = {
+        "pmic, one cache": (lambda: mi.load_dict({"type": "pmic"}), True),
+        "pmic, rebuilt per view": (lambda: mi.load_dict({"type": "pmic"}), False),
+        "irradiance_cache (camera-seeded)": (lambda: mi.load_dict({"type": "pmic", "method": "irradiance_cache"}), True),
+    }
+    for name, (make, reuse) in configs.items():
+        mi.render(scene, integrator=make(), sensor=0, spp=1)  # compile
+        _, seconds = timed(lambda: render_all(make, reuse))
+        rows[name] = {"seconds": seconds, "views_per_second": args.views / seconds}
+        print(f"{name:34s} {seconds:7.2f} s  {args.views / seconds:.2f} views/s", flush=True)
+    _, seconds = timed(lambda: render_views(path, list(views), args.spp, n_workers=args.workers,
+                                            threads_per_worker=None, progress=False))
+    rows[f"pmic on Dask ({args.workers} worker)"] = {"seconds": seconds, "views_per_second": args.views / seconds}
+    print(f"pmic on Dask: {seconds:7.2f} s  {args.views / seconds:.2f} views/s (includes cluster start-up)")
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    command = "python benchmarks/views.py " + " ".join(argv or [])
+    (args.out / "views.json").write_text(json.dumps({"command": command, "views": args.views,
+                                                     "resolution": args.resolution, "spp": args.spp,
+                                                     "rows": rows}, indent=2))
+    md = [f"# {args.views} views of the Cornell box, {args.resolution}², {args.spp} spp", "",
+          f"`{command}`", "", "| configuration | time [s] | views/s |", "|---|---|---|"]
+    md += [f"| {k} | {v['seconds']:.2f} | {v['views_per_second']:.2f} |" for k, v in rows.items()]
+    (args.out / "views.md").write_text("\n".join(md) + "\n")
+    print("wrote", args.out / "views.md")
+
+
+if __name__ == "__main__":
+    main()
