@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -92,12 +93,12 @@ def main(argv=None):
         rows[name] = {"seconds": seconds, "views_per_second": args.views / seconds}
         print(f"{name:34s} {seconds:7.2f} s  {args.views / seconds:.2f} views/s", flush=True)
     _, seconds = timed(lambda: render_views(path, list(views), args.spp, n_workers=args.workers,
-                                            threads_per_worker=None, progress=False))
+                                            progress=False))
     rows[f"pmic on Dask ({args.workers} worker)"] = {"seconds": seconds, "views_per_second": args.views / seconds}
     print(f"pmic on Dask: {seconds:7.2f} s  {args.views / seconds:.2f} views/s (includes cluster start-up)")
 
     args.out.mkdir(parents=True, exist_ok=True)
-    command = "python benchmarks/views.py " + " ".join(argv or [])
+    command = "python benchmarks/views.py " + " ".join(sys.argv[1:] if argv is None else argv)
     (args.out / "views.json").write_text(json.dumps({"command": command, "views": args.views,
                                                      "resolution": args.resolution, "spp": args.spp,
                                                      "rows": rows}, indent=2))

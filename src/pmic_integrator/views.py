@@ -53,6 +53,8 @@ def render_one(scene_file: str, cache_bytes: bytes, sensor: int, spp: int, seed:
     import numpy as np
 
     mi.set_variant(variant)
+    # Registered explicitly: a worker thread may not have seen the variant callback.
+    pmic_integrator.register(variant)
     start = time.perf_counter()
     with tempfile.TemporaryDirectory() as folder:
         path = os.path.join(folder, "cache.npz")
@@ -67,14 +69,15 @@ def render_one(scene_file: str, cache_bytes: bytes, sensor: int, spp: int, seed:
 
 def render_views(scene_file, sensors=None, spp: int = 16, seed: int = 0, integrator=None,
                  cache_file=None, scheduler=None, client=None, n_workers: int = 1,
-                 threads_per_worker: int | None = None, variant: str = "llvm_ad_rgb",
+                 threads_per_worker: int = 1, variant: str = "llvm_ad_rgb",
                  progress: bool = True, **load_args) -> dict:
     """Render ``sensors`` (indices; default all) of ``scene_file`` from one cache on Dask.
 
     The cache is built here once (or read from an existing ``cache_file``) and sent to
     the workers as bytes. ``client``: an existing ``dask.distributed.Client``;
     ``scheduler``: a scheduler address to connect to; neither: a ``LocalCluster`` of
-    ``n_workers`` processes. Returns ``{sensor: image}`` (H x W x C float32 arrays);
+    ``n_workers`` processes with ``threads_per_worker`` task threads each (1: a view
+    already uses every core through Dr.Jit's own thread pool). Returns ``{sensor: image}`` (H x W x C float32 arrays);
     the same sensor gives the same image whatever else is rendered, in whatever order.
     """
     try:
