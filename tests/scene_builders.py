@@ -107,6 +107,18 @@ def cornell(size=32, **replace):
     return d
 
 
+#: A small, fast pmic configuration for tests of behaviour (not of accuracy).
+SMALL_PMIC = {"global_photons": 20_000, "caustic_photons": 5_000, "gather_rays": 64}
+
+
+def pmic_cornell(resolution=32, **params):
+    """Mitsuba's Cornell box at ``resolution``² rendered by a small pmic (SMALL_PMIC,
+    updated with ``params``)."""
+    d = cornell(resolution)
+    d["integrator"] = {"type": "pmic", **SMALL_PMIC, **params}
+    return d
+
+
 def envmap_exterior(rotate=True, size=(40, 30), bitmap=None):
     """A diffuse ground and a plastic sphere under an environment map with a bright
     patch (a 'sun'), optionally rotated as real scenes' envmaps are."""

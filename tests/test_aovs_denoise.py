@@ -9,15 +9,7 @@ import pmic_integrator
 from pmic_integrator import metrics, scenes
 from pmic_integrator.settings import AOVS
 
-SMALL = {"global_photons": 20_000, "caustic_photons": 5_000, "gather_rays": 64}
-
-
-def cornell(resolution=32, **overrides):
-    d = mi.cornell_box()
-    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = resolution
-    d["sensor"]["film"]["rfilter"] = {"type": "box"}
-    d["integrator"] = {"type": "pmic", **SMALL, **overrides}
-    return d
+from scene_builders import SMALL_PMIC as SMALL, pmic_cornell as cornell
 
 
 # -------------------------------------------------------------------------------------

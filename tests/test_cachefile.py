@@ -10,15 +10,11 @@ import pytest
 
 from pmic_integrator import cachefile
 
-SMALL = {"global_photons": 20_000, "caustic_photons": 5_000, "gather_rays": 64}
+from scene_builders import SMALL_PMIC as SMALL, pmic_cornell
 
 
-def cornell(resolution=24, **overrides):
-    d = mi.cornell_box()
-    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = resolution
-    d["sensor"]["film"]["rfilter"] = {"type": "box"}
-    d["integrator"] = {"type": "pmic", **SMALL, **overrides}
-    return d
+def cornell(**params):
+    return pmic_cornell(24, **params)
 
 
 @pytest.fixture(scope="module")

@@ -198,9 +198,8 @@ def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active,
     target = rec_p + rec_n * lift
     # Nothing can stand between points closer than the nearest surface the gather met
     # (up to its sampling: OBSTACLE_MARGIN), so only the outer band of the reach pays.
-    test = active & (rec_reach > obstacle) & (dr.norm(target - origin) > OBSTACLE_MARGIN * obstacle)
-    if always:
-        test = mi.Bool(active)
+    test = mi.Bool(active) if always else \
+        active & (rec_reach > obstacle) & (dr.norm(target - origin) > OBSTACLE_MARGIN * obstacle)
     return segment_blocked(scene, origin, target, test)
 
 
@@ -544,8 +543,6 @@ class RecordIndex:
                 ok &= ~hidden_from(scene, x, n, rp, rn, rr * max_error, ob, lift, ok,
                                    always=direct is not None)
             e = dr.gather(mi.Color3f, r.irradiance, index, ok)
-            if direct is not None:
-                e_direct = dr.gather(mi.Color3f, direct, index, ok)
             dx = x - rp
             rot = dr.cross(rn, n)
             ext = []
@@ -555,7 +552,7 @@ class RecordIndex:
                 ext.append(e[c] + dr.dot(gt, dx) + dr.dot(gr, rot))
             e_x = dr.maximum(mi.Color3f(*ext), 0.0)
             if direct is not None:
-                e_x += e_direct
+                e_x += dr.gather(mi.Color3f, direct, index, ok)
             total = dr.select(ok, total + w * e_x, total)
             weight_sum = dr.select(ok, weight_sum + w, weight_sum)
             radius_sum = dr.select(ok, radius_sum + w * rr, radius_sum)

@@ -14,7 +14,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import cache as cache_mod
+from . import cache as cache_mod, cachefile
 from ._jit import concat, every_nth, opaque_float, rng as make_rng, surface_offset
 from .cache import CacheRecords, RecordIndex
 from mitsuba.ad.integrators.common import mis_weight
@@ -23,7 +23,7 @@ from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
 from .gather import VISIBILITY_LIFT, GatherSource, trace_gather_rays
 from .hashgrid import BallGrid, PointGrid, PointGridPyramid
 from .irradiance import (adapted_lookup_radius, estimate_irradiance, lookup_radius,
-                         precompute_irradiance, sort_into_grid as _sorted_map)
+                         precompute_irradiance, sort_into_grid)
 from .photons import CAUSTIC, GLOBAL, PhotonMap, trace_photons
 from .settings import METHODS, Settings, check_against_scene  # noqa: F401 (METHODS re-exported)
 
@@ -381,8 +381,6 @@ class PMICIntegrator(mi.SamplingIntegrator):
         """Write the photon maps and the cache built for the last scene to ``path``
         (``.npz``; see :mod:`pmic_integrator.cachefile`). Load it with the
         ``cache_file`` parameter, in this or another process."""
-        from . import cachefile
-
         with self._render_lock:
             prepared = self._prepared
             if prepared is None:
@@ -397,8 +395,6 @@ class PMICIntegrator(mi.SamplingIntegrator):
         self._scene_ref = scene
         cache_file = self.settings.cache_file
         if cache_file and os.path.exists(cache_file):
-            from . import cachefile
-
             t0 = time.perf_counter()
             prepared = cachefile.load(cache_file, scene, key[2], key[1])
             prepared.key = key
@@ -408,8 +404,6 @@ class PMICIntegrator(mi.SamplingIntegrator):
             return
         self._build_prepared(scene, key)
         if cache_file:
-            from . import cachefile
-
             cachefile.save(cache_file, self._prepared, key[2], key[1])
             self._prepared.stats["cache_saved_to"] = cache_file
 
@@ -489,8 +483,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         caustic_radius = adapted_lookup_radius(
             caustic_map.position, lookup_radius(info.surface_area, caustic_map.count, caustic_size),
             caustic_size)
-        global_map, global_grid = _sorted_map(global_map, global_radius, self.settings.lookup_size)
-        caustic_map, caustic_grid = _sorted_map(caustic_map, caustic_radius, caustic_size)
+        global_map, global_grid = sort_into_grid(global_map, global_radius, self.settings.lookup_size)
+        caustic_map, caustic_grid = sort_into_grid(caustic_map, caustic_radius, caustic_size)
         if global_map.count and self.settings.method == "photon_map" and not self.settings.final_gather:
             skipped.append("precomputed irradiance: photon_map without final gathering never reads it")
         elif global_map.count:
@@ -764,7 +758,11 @@ class PMICIntegrator(mi.SamplingIntegrator):
             return dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes), dr.zeros(mi.Float, lanes)
         return index.interpolate(p, n, active, with_radius=True)
 
-    def _global_irradiance(self, p, n, depth, active, cached=None, covered=None):
+    def _count_fallback(self, need):
+        """Count the camera vertices that no record reached (stats)."""
+        dr.scatter_reduce(dr.ReduceOp.Add, self._fallback_counter, mi.UInt32(1), mi.UInt32(0), need)
+
+    def _global_irradiance(self, p, n, depth, active, cached, covered):
         """Irradiance at a camera vertex from light that bounced off a diffuse surface
         first: the cache's ``cached`` value where ``covered``, else the global photon
         map (the method ``photon_map`` reads the map only)."""
@@ -777,10 +775,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
             if self.settings.final_gather:
                 return dr.zeros(mi.Color3f, lanes)
             return self._photon_estimate(p, n, depth_limit, active)
-        if cached is None:
-            cached, covered, _ = self._cache_lookup(p, n, active)
         need = mi.Bool(active) & ~covered
-        dr.scatter_reduce(dr.ReduceOp.Add, self._fallback_counter, mi.UInt32(1), mi.UInt32(0), need)
+        self._count_fallback(need)
         fallback = self._photon_estimate(p, n, depth_limit, need)
         return dr.select(covered, cached, fallback)
 
@@ -790,7 +786,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         photon that ``si`` sees (a shadow ray: a photon across a thin wall is not
         read)."""
         need = mi.Bool(active) & ~covered
-        dr.scatter_reduce(dr.ReduceOp.Add, self._fallback_counter, mi.UInt32(1), mi.UInt32(0), need)
+        self._count_fallback(need)
         source = self._prepared.gather_source
         if source is None:
             return dr.select(covered, cached, 0.0)
@@ -1029,8 +1025,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         MIS with :meth:`_diffuse_emitter_hit`), the other lobes share them with the
         continuation's BSDF sampling. Inseparable ones share them as a whole, and so do
         traced vertices (whose continuation samples the whole BSDF). Where ``armed``,
-        light through the delta/glossy lobes is left out (a caustic the map holds); where ``no_diffuse``, the diffuse lobe is (cache records hold
-        its direct light).
+        light through the delta/glossy lobes is left out (a caustic the map holds);
+        where ``no_diffuse``, the diffuse lobe is (the cache holds its direct light).
         """
         n_em = float(self.settings.direct_samples)
 
