@@ -106,16 +106,26 @@ def main(argv=None) -> int:
     print("(low-freq = relMSE of both images blurred by a 4-pixel Gaussian: structured error)")
     if args.denoise:
         dn_ratio = path_dn.rel_mse / pmic_dn.rel_mse if pmic_dn.rel_mse > 0 else float("inf")
-        print(f"Denoised, at equal time: pmic+OIDN's relMSE is {dn_ratio:.2f}x "
-              f"{'lower' if dn_ratio >= 1 else 'higher'} than path+OIDN's"
-              + ("" if dn_ratio >= 1 else f" ({1 / dn_ratio:.2f}x)") + ".")
+        if dn_ratio >= 1:
+            print(f"Denoised, at equal time: pmic+OIDN's relMSE is {dn_ratio:.2f}x lower than "
+                  f"path+OIDN's.")
+        else:
+            print(f"Denoised, at equal time: path+OIDN's relMSE is {1 / dn_ratio:.2f}x lower than "
+                  f"pmic+OIDN's.")
     ratio = path.rel_mse / pmic.rel_mse if pmic.rel_mse > 0 else float("inf")
     print("(relMSE = mean((img-ref)^2/(ref^2+0.01)); luminance = mean luminance / the reference's)")
     if ratio >= 1:
         print(f"\nAt equal time, pmic's relMSE is {ratio:.1f}x lower than path's.")
     else:
-        print(f"\nAt equal time, path's relMSE is {1 / ratio:.1f}x lower than pmic's (at small "
-              f"sizes pmic's fixed cost, photons and cache, dominates; try --resolution 512).")
+        hints = []
+        if pmic.stats.get("time_render", pmic.seconds) < 0.5 * pmic.seconds:
+            hints.append("pmic's fixed cost, photons and cache, is most of this run: try more "
+                         "--spp or a larger --resolution")
+        if spec.get("estimator", "final_gather") == "final_gather":
+            hints.append("its default estimator (final gather) leaves noise for a denoiser to "
+                         "remove: compare denoised with --denoise, or try --set estimator=first_hit")
+        hint = "; ".join(hints) or "see the README's results"
+        print(f"\nAt equal time, path's relMSE is {1 / ratio:.1f}x lower than pmic's ({hint}).")
     stats = pmic.stats
     stage_names = ("time_photons", "time_precompute", "time_cache", "time_cache_view", "time_render")
     stages = ", ".join(f"{k[5:]} {stats[k]:.2f} s" for k in stage_names if k in stats)
