@@ -195,7 +195,7 @@ def test_one_integrator_two_threads():
 def test_failed_build_is_retried(monkeypatch):
     """A build that fails must leave nothing behind: the next render rebuilds (before:
     0 records and every shading point fell back to the photon map)."""
-    from pmic_integrator import integrator as module
+    from pmic_integrator import pipeline as module
 
     scene = mi.load_dict(sb.cornell(size=16))
     integrator = mi.load_dict({"type": "pmic", **SMALL})

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from . import streams
 from .gather import GatherSource, stratified_directions, trace_gather_rays
 from ._jit import concat, opaque_float, opaque_u32, rng as make_rng, segment_blocked, surface_offset
 from .hashgrid import BallGrid, PointGrid
@@ -49,8 +50,6 @@ GRADIENT_LIMIT = 1.0
 #: light's irradiance varies by a few % over its solid angle, so 64 samples give ~1 %
 #: where it is in full view; the error is read one diffuse bounce away from the camera.
 RECORD_DIRECT_SAMPLES = 64
-#: Random stream of those samples (see ``_jit.rng``).
-RECORD_DIRECT_STREAM = 11
 
 
 @dataclass
@@ -295,7 +294,7 @@ def _stratified_rays(p, n, strata, seed, stream, offset):
 
 def _gather_rays(scene, source, p, n, strata, seed, offset):
     """Trace M·N stratified rays per point; return per-ray data in [point][j][k] order."""
-    ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, 1, offset)
+    ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, streams.RECORD_GATHER, offset)
     radiance, distance = trace_gather_rays(scene, source, ray, rng, mi.Bool(True))
     dr.eval(radiance, distance)
     return owner, j, k, local, radiance, distance
@@ -309,7 +308,7 @@ def harmonic_mean_distance(scene, p: mi.Point3f, n: mi.Vector3f, strata, seed: i
     if dr.width(p.x) == 0:
         return mi.Float(), mi.Float()
     rays = strata[0] * strata[1]
-    ray = _stratified_rays(p, n, strata, seed, 2, offset)[0]
+    ray = _stratified_rays(p, n, strata, seed, streams.PILOT_DISTANCE, offset)[0]
     si = scene.ray_intersect_preliminary(ray, mi.Bool(True))
     inv = dr.select(si.is_valid(), dr.rcp(dr.maximum(si.t, 1e-30)), 0.0)
     total = block_sum(inv, rays)
@@ -478,7 +477,7 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
     ref = dr.zeros(mi.Interaction3f, lanes)
     ref.p = p + n * surface_offset(p, offset)
     ref.n = n
-    rng = make_rng(lanes, seed, stream=RECORD_DIRECT_STREAM)
+    rng = make_rng(lanes, seed, stream=streams.RECORD_DIRECT)
     ds, weight = scene.sample_emitter_direction(ref, mi.Point2f(rng.next_float32(), rng.next_float32()),
                                                 True)
     e = weight * dr.maximum(dr.dot(ds.d, n), 0.0)
@@ -522,6 +521,13 @@ class RecordIndex:
         r = self.records
         return _covered_by(r.position, r.normal, r.radius, self.grid, x, n, self.max_error, active,
                            visibility=self._visibility())
+
+    def near(self, x, n, active=True) -> mi.Bool:
+        """Is (x, n) within BACKUP_REACH × a·R of some record that sees it? Where it
+        is, interpolation finds records (see :meth:`interpolate`)."""
+        r = self.records
+        return _covered_by(r.position, r.normal, r.radius, self.backup_grid, x, n,
+                           self.max_error * BACKUP_REACH, active, visibility=self._visibility())
 
     def _weighted_sum(self, grid: BallGrid, max_error: float, x, n, active, label):
         r = self.records

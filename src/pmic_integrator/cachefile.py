@@ -25,7 +25,8 @@ import mitsuba as mi
 import numpy as np
 
 FORMAT = "pmic-cache"
-VERSION = 1
+#: 2: first-hit caches completed by surface probes (no records added per view).
+VERSION = 2
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
@@ -40,7 +41,7 @@ def _classes():
     from .cache import CacheRecords, RecordIndex
     from .gather import GatherSource
     from .hashgrid import BallGrid, PointGrid, PointGridPyramid
-    from .integrator import PreparedScene, SceneInfo
+    from .pipeline import PreparedScene, SceneInfo
     from .photons import PhotonMap
 
     return {c.__name__: c for c in (CacheRecords, RecordIndex, GatherSource, BallGrid, PointGrid,

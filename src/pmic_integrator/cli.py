@@ -85,7 +85,7 @@ def main(argv=None) -> int:
     scene = scenes.load_scene(args.scene, resolution=args.resolution, spp=args.spp)
     print(f"scene {args.scene} at {args.resolution}x{args.resolution}, variant {args.variant}")
     print("rendering with pmic (a warm-up render compiles the kernels first) ...", flush=True)
-    pmic = compare.render_measured(scene, spec, args.spp, reference, label="pmic")
+    pmic = compare.render_measured(scene, spec, args.spp, reference, label="pmic", progress=True)
     print(f"rendering with path for the same time ({pmic.seconds:.2f} s) ...", flush=True)
     path = compare.path_at_equal_time(scene, pmic.seconds, reference)
     results = [pmic, path]
@@ -131,7 +131,7 @@ def main(argv=None) -> int:
     stages = ", ".join(f"{k[5:]} {stats[k]:.2f} s" for k in stage_names if k in stats)
     print(f"pmic stages: {stages}; {stats.get('photons_global', 0)} global + "
           f"{stats.get('photons_caustic', 0)} caustic photons, {stats.get('records', 0)} records "
-          f"(+{stats.get('records_fallback', 0)} from the camera); first-run compile overhead "
+          f"({stats.get('records_probes', 0)} of them at surface probes); first-run compile overhead "
           f"{pmic.compile_s:.2f} s")
 
     out = args.output

@@ -91,13 +91,14 @@ def score(result: RenderResult, reference: np.ndarray | None) -> RenderResult:
 
 
 def render_measured(scene, spec: dict, spp: int, reference=None, label=None, seed=0,
-                    denoised: bool = False) -> RenderResult:
+                    denoised: bool = False, progress: bool = False) -> RenderResult:
     """A 1-spp warm-up render, then the timed render, scored against ``reference``.
 
     The warm-up uses a separate integrator object, so the timed run rebuilds its
     photon maps and cache (a reused cache would hide their cost).
     ``compile_s`` is the warm-up's time minus what the timed run's stages would take
-    at 1 spp: the cost of compiling kernels on a first run.
+    at 1 spp: the cost of compiling kernels on a first run. ``progress``: progress
+    bars of the timed run's photon and cache stages on stderr.
     """
     run_spec = with_guides(spec) if denoised else dict(spec)
     # The warm-up is another integrator object, so the timed run still builds its own
@@ -105,6 +106,8 @@ def render_measured(scene, spec: dict, spp: int, reference=None, label=None, see
     # (photon and record counts, which depend on the seed, are baked into some).
     _, cold_seconds = timed_render(scene, mi.load_dict(run_spec), 1, seed + 1, denoised)
     integrator = mi.load_dict(run_spec)
+    if progress and hasattr(integrator, "build_cache"):  # pmic's stages
+        integrator.progress = True
     image, seconds = timed_render(scene, integrator, spp, seed, denoised)
     stats = dict(getattr(integrator, "stats", {}) or {})
     render_s = stats.get("time_render", seconds)

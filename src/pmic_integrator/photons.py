@@ -27,6 +27,7 @@ import mitsuba as mi
 from ._jit import concat, opaque_u32, rng as make_rng
 from .bsdfs import lobes_separable
 from .emission import sample_emitter_rays
+from .streams import photon_batch_seed
 
 log = logging.getLogger("pmic")
 
@@ -206,7 +207,7 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     while stored < target and emitted < max_paths:
         batch_paths = int(min(batch_paths, max_paths - emitted))
         pos, nrm, pwr, dep, spec, path = _trace_batch(
-            scene, kind, emitted, batch_paths, seed * 7919 + batch * 2 + (kind == CAUSTIC),
+            scene, kind, emitted, batch_paths, photon_batch_seed(seed, batch, kind == CAUSTIC),
             max_store_depth)
         got = dr.width(dep)
         remaining = target - stored

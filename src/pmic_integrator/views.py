@@ -29,9 +29,10 @@ def _scene(scene_file: str, integrator: dict, load_args: dict):
 
 
 def build_cache_file(scene_file, cache_file, integrator: dict | None = None, variant="llvm_ad_rgb",
-                     **load_args) -> dict:
+                     progress: bool = False, **load_args) -> dict:
     """Build the photon maps and cache of ``scene_file`` and save them to
-    ``cache_file``; returns the stages' statistics."""
+    ``cache_file``; returns the stages' statistics. ``progress``: bars of the photon
+    and cache stages on stderr."""
     import pmic_integrator  # noqa: F401
     import mitsuba as mi
 
@@ -39,6 +40,7 @@ def build_cache_file(scene_file, cache_file, integrator: dict | None = None, var
     spec = {"type": "pmic", **(integrator or {})}
     spec.pop("cache_file", None)
     scene, pmic = _scene(scene_file, spec, load_args)
+    pmic.progress = progress
     stats = pmic.build_cache(scene)
     pmic.save_cache(cache_file)
     return stats
@@ -91,7 +93,7 @@ def render_views(scene_file, sensors=None, spp: int = 16, seed: int = 0, integra
     with tempfile.TemporaryDirectory() as folder:
         path = Path(cache_file) if cache_file else Path(folder) / "cache.npz"
         if not path.exists():
-            build_cache_file(scene_file, path, spec, variant, **load_args)
+            build_cache_file(scene_file, path, spec, variant, progress, **load_args)
         cache_bytes = path.read_bytes()
     if sensors is None:
         import pmic_integrator  # noqa: F401

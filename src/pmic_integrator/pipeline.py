@@ -1,0 +1,669 @@
+"""Stages 1-3 of the method, view independent: photons → irradiance precomputed at the
+photons → the irradiance cache, seeded from the photons.
+
+:func:`prepare` runs them for a scene and a :class:`~pmic_integrator.settings.Settings`
+and returns a :class:`PreparedScene`, built in locals and returned whole: a stage that
+fails leaves nothing behind. It needs no camera: the cache is a pure function of the
+scene, the settings and the scene seed. Where photons are too sparse to tell (surfaces
+no photon reached, the shadowed gap between a light and the ceiling), *surface probes*
+(points sampled on every diffuse surface by area) stand in for what a camera would
+have told the classic cache.
+
+:func:`camera_seeded_index` is the classic, view-dependent cache of the
+``irradiance_cache`` method (records placed from one camera); it returns a new index
+and changes nothing that is shared.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import re
+import sys
+import time
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from . import cache as cache_mod, streams
+from ._jit import concat, every_nth, opaque_float, rng as make_rng
+from .bsdfs import non_diffuse_context
+from .cache import CacheRecords, RecordIndex
+from .gather import VISIBILITY_LIFT, GatherSource
+from .hashgrid import BallGrid, PointGridPyramid
+from .irradiance import adapted_lookup_radius, lookup_radius, precompute_irradiance, sort_into_grid
+from .photons import CAUSTIC, GLOBAL, PhotonMap, trace_photons
+from .settings import Settings, check_against_scene
+
+log = logging.getLogger("pmic")
+
+# --- Tuning constants of stages 1-3 ------------------------------------------------------
+#: Smallest record *reach* (a·R), in units of the global photon lookup radius:
+#: irradiance is only resolved to about one lookup radius, so smaller records add cost,
+#: not detail; and a reach of ~4 photon spacings leaves no gaps between the photons.
+MIN_REACH_LOOKUPS = 1.0
+#: Largest record radius as a fraction of the scene's length scale: a view-independent
+#: cache has no pixel footprint to bound it, the scene size does.
+R_MAX_DIAGONAL = 0.08
+#: Neighbour clamping looks this many photon lookup radii around each candidate, and
+#: repeats until the bound has spread over the largest radius (at most this many passes).
+CLAMP_STEP_LOOKUPS = 2.0
+CLAMP_ITERATIONS = 6
+#: Surface probes (first-hit estimator): this many points sampled by area over every
+#: diffuse surface, per global photon, within the bounds below. Uncovered probes get
+#: records of their own (coverage where photons missed); every PROBE_CLAMP_STRIDE-th
+#: probe also bounds its neighbours' radii (the light gap; the classic cache's camera
+#: points did this per view, 1 in 16 of 512² pixels).
+PROBES_PER_PHOTON = 0.25
+MIN_PROBES = 16384
+MAX_PROBES = 262144
+PROBE_CLAMP_STRIDE = 4
+#: A probe whose pilot rays' harmonic mean distance is below this many ray offsets is
+#: enclosed (a face resting on another): no camera sees it, so it bounds no record.
+ENCLOSED_OFFSETS = 100.0
+#: A probe bounds its neighbours by its own pilot radius, floored at this fraction of
+#: the smallest record radius (not at it, as records are): in a gap narrower than a
+#: record (1 cm between a light and the ceiling), records from outside must not
+#: reach in, so the probes there get records of their own. 1.0 left the gap lit
+#: (relMSE 1.0e-2 in the Cornell box's light-gap crop at a = 0.5; 1.4e-3 at 0.1).
+PROBE_FLOOR = 0.1
+#: Shrinking records may uncover photons, which get records of their own that must obey
+#: the probes' bounds too: repeat at most this many times (a record covers its photon).
+PROBE_CLAMP_PASSES = 4
+#: Candidates walked first, evenly spread, before the ones they leave uncovered.
+PLACEMENT_SUBSET = 16384
+#: Ray origins are pushed off the surface by this fraction of the scene's length scale
+#: (see ``CacheBuilder.length_scale``), plus RAY_OFFSET_RELATIVE of the point's largest
+#: coordinate (float precision far from the origin).
+RAY_OFFSET_DIAGONAL = 1e-5
+#: The length scale is the diagonal, but at most this many global lookup radii: a
+#: 2·10⁶-unit ground plane under a 1-unit box must not push rays 28 units off the box,
+#: nor let records grow to 10⁵ units. Photons tell where the light, and so the
+#: detail, is.
+LENGTH_SCALE_LOOKUPS = 100.0
+#: Photons per caustic estimate relative to ``lookup_size``: caustics are sharper.
+CAUSTIC_LOOKUP_FRACTION = 0.5
+#: The caustic pass emits at most this many paths per requested photon...
+CAUSTIC_PATHS_PER_PHOTON = 20
+#: ...and is dropped (records gather caustic light instead) below this yield.
+CAUSTIC_MIN_YIELD = 0.25
+#: Default emitted-path bound per map, as a multiple of the requested photon count.
+MAX_PATHS_PER_PHOTON = 100
+#: ...and never less than this many paths (small requests in dim scenes).
+MIN_MAX_PATHS = 1 << 22
+
+
+@dataclass
+class SceneInfo:
+    """What the pipeline needs to know about a scene before tracing anything."""
+
+    diagonal: float  #: length of the bounding-box diagonal (sets world-space scales)
+    surface_area: float  #: sum of the shapes' surface areas (sets photon radii)
+    emitters: int  #: number of emitters
+    has_diffuse: bool  #: some BSDF has a diffuse lobe (else no cache, no global map)
+    has_specular: bool  #: some BSDF has a delta or glossy lobe (else no caustic map)
+    has_infinite_emitter: bool = False  #: an environment (envmap, constant) lights the scene
+    has_delta_emitter: bool = False  #: a point, spot or directional light (no ray hits it)
+
+    @staticmethod
+    def of(scene: mi.Scene) -> "SceneInfo":
+        bbox = scene.bbox()
+        diagonal = float(dr.norm(bbox.extents())) if bbox.valid() else 0.0
+        area, has_diffuse, has_specular = 0.0, False, False
+        for shape in scene.shapes():
+            a = _shape_area(shape)
+            area += a
+            flags = _bsdf_flags(shape)
+            has_diffuse |= bool(flags & int(mi.BSDFFlags.Diffuse))
+            has_specular |= bool(flags & (int(mi.BSDFFlags.Delta) | int(mi.BSDFFlags.Glossy)))
+        if not math.isfinite(diagonal) or diagonal <= 0:
+            diagonal = 1.0
+        if not math.isfinite(area) or area <= 0:
+            area = diagonal * diagonal
+        infinite = any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) for e in scene.emitters())
+        delta = any(mi.has_flag(e.flags(), mi.EmitterFlags.DeltaPosition) or
+                    mi.has_flag(e.flags(), mi.EmitterFlags.DeltaDirection) for e in scene.emitters())
+        return SceneInfo(diagonal, area, len(scene.emitters()), has_diffuse, has_specular, infinite,
+                         delta)
+
+
+@dataclass
+class PreparedScene:
+    """Everything the render stage reads, built once per scene (view independent)."""
+
+    key: tuple  #: fingerprint of the scene and the parameters it was built with
+    info: SceneInfo
+    global_map: PhotonMap
+    caustic_map: PhotonMap
+    global_grid: PointGridPyramid | None
+    caustic_grid: PointGridPyramid | None
+    global_radius: float  #: world-space radius of global-map estimates
+    caustic_radius: float  #: world-space radius of caustic-map estimates
+    index: RecordIndex | None  #: the irradiance cache (None: not used)
+    skipped: list = field(default_factory=list)  #: passes skipped, with reasons
+    stats: dict = field(default_factory=dict)  #: figures of the stages above
+    gather_source: GatherSource | None = None  #: what gather rays read (stage 2)
+
+    @property
+    def length_scale(self) -> float:
+        """World-space scale for ray offsets and the largest record: the diagonal, but
+        no more than LENGTH_SCALE_LOOKUPS global lookup radii."""
+        if self.global_radius > 0:
+            return min(self.info.diagonal, LENGTH_SCALE_LOOKUPS * self.global_radius)
+        return self.info.diagonal
+
+    @property
+    def ray_offset(self) -> float:
+        return RAY_OFFSET_DIAGONAL * self.length_scale
+
+
+def scene_fingerprint(scene: mi.Scene) -> str:
+    """Digest of the scene's parameters, so that an edited scene is rebuilt and a cache
+    file is only read for its own scene. Stable across processes: unnamed objects'
+    keys (``object_<address>``) are normalised and entries sorted."""
+    params = mi.traverse(scene)
+    entries = []
+    for key in params.keys():
+        try:
+            value = params[key]
+        except Exception:  # pragma: no cover - unreadable parameters are skipped
+            continue
+        if dr.is_array_v(value):
+            data = np.ascontiguousarray(np.array(value)).tobytes()
+        else:
+            data = repr(value).encode()
+        entries.append((re.sub(r"object_\d+", "object", key).encode(), data))
+    digest = hashlib.blake2b(digest_size=16)
+    for name, data in sorted(entries):
+        digest.update(name)
+        digest.update(len(data).to_bytes(8, "little"))
+        digest.update(data)
+    return digest.hexdigest()
+
+
+# ----------------------------------------------------------------------------------------
+# Progress
+# ----------------------------------------------------------------------------------------
+class Progress:
+    """Progress bars of the stages on stderr when ``enabled`` (the CLI turns it on),
+    one line per stage; photon counts go to Mitsuba's log at Info level always."""
+
+    def __init__(self, enabled: bool = False, stream=None):
+        self.enabled = enabled
+        self.stream = stream if stream is not None else sys.stderr
+        self._open = None
+
+    def update(self, stage: str, fraction: float, detail: str = ""):
+        fraction = min(max(float(fraction), 0.0), 1.0)
+        # Redrawn in place on a terminal; in a log file, one line per finished stage.
+        tty = getattr(self.stream, "isatty", lambda: False)()
+        if self.enabled and (tty or fraction >= 1.0):
+            filled = int(30 * fraction)
+            self.stream.write(f"\r{stage:22s} [{'#' * filled}{'.' * (30 - filled)}] "
+                              f"{100 * fraction:3.0f}% {detail}".ljust(96))
+            self._open = stage
+            if fraction >= 1.0:
+                self.stream.write("\n")
+                self._open = None
+            self.stream.flush()
+
+    def photons(self, kind, stored, target, emitted):
+        """The photon tracer's callback."""
+        mi.Log(mi.LogLevel.Info, f"pmic: {kind} photons {stored}/{target} ({emitted} paths emitted)")
+        self.update(f"photons ({kind})", stored / max(target, 1), f"{emitted} paths")
+
+    def done(self, stage: str, detail: str = ""):
+        self.update(stage, 1.0, detail)
+
+
+# ----------------------------------------------------------------------------------------
+# The pipeline
+# ----------------------------------------------------------------------------------------
+def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
+            progress: Progress | None = None) -> PreparedScene:
+    """Stages 1-3 for ``scene``: returns the whole :class:`PreparedScene` (nothing is
+    published before the last stage has finished)."""
+    progress = progress or Progress()
+    if key is None:
+        key = (id(scene), settings.key(), scene_fingerprint(scene))
+    info = SceneInfo.of(scene)
+    check_against_scene(settings, info.surface_area, info.diagonal)
+    stats = {}
+    need_global, need_caustic, skipped = plan_passes(info, settings)
+
+    t0 = time.perf_counter()
+    global_map, caustic_map = trace_maps(scene, settings, info, need_global, need_caustic, skipped,
+                                         progress)
+    dr.sync_thread()
+    stats["time_photons"] = time.perf_counter() - t0
+    stats["photons_global"] = global_map.count
+    stats["photons_caustic"] = caustic_map.count
+    stats["paths_emitted"] = global_map.paths_emitted + caustic_map.paths_emitted
+
+    t0 = time.perf_counter()
+    lookups = precompute(settings, info, global_map, caustic_map, skipped)
+    dr.sync_thread()
+    progress.done("precomputed irradiance", f"{lookups['global_map'].count} photons")
+    stats["time_precompute"] = time.perf_counter() - t0
+    stats["lookup_radius"] = lookups["global_radius"]
+    stats["caustic_radius"] = lookups["caustic_radius"]
+
+    t0 = time.perf_counter()
+    prepared = PreparedScene(key=key, info=info, index=None,
+                             skipped=skipped, stats=stats, **lookups)
+    index, cache_stats = build_cache(scene, settings, prepared, progress)
+    dr.sync_thread()
+    stats.update(cache_stats)
+    stats["time_cache"] = time.perf_counter() - t0
+    stats["skipped"] = list(skipped)
+    for reason in skipped:
+        log.info("pmic: skipped %s", reason)
+    prepared.index = index
+    return prepared
+
+
+def plan_passes(info: SceneInfo, settings: Settings):
+    """Which photon maps this scene needs: ``(need_global, need_caustic, skipped)``,
+    each skip with its reason."""
+    skipped = []
+    need_global = need_caustic = True
+    if settings.max_depth != -1 and settings.max_depth <= 2:
+        skipped.append("photons: max_depth <= 2 allows direct light only")
+        need_global = need_caustic = False
+    if info.emitters == 0:
+        skipped.append("photons: the scene has no emitter")
+        need_global = need_caustic = False
+    if not info.has_diffuse:
+        skipped.append("global map and cache: no surface has a diffuse lobe")
+        need_global = need_caustic = False
+    if need_caustic and not info.has_specular:
+        skipped.append("caustic map: no delta or glossy surface can focus light")
+        need_caustic = False
+    if need_caustic and settings.max_depth != -1 and settings.max_depth < 3:
+        # light -> specular -> diffuse -> camera is 3 segments.
+        skipped.append("caustic map: max_depth < 3 leaves no room for a caustic path")
+        need_caustic = False
+    if settings.global_photons == 0 and need_global:
+        skipped.append("global map: global_photons = 0")
+        need_global = False
+    if settings.caustic_photons == 0 and need_caustic:
+        skipped.append("caustic map: caustic_photons = 0")
+        need_caustic = False
+    return need_global, need_caustic, skipped
+
+
+def max_paths(settings: Settings, photons: int) -> int:
+    """Emitted-path bound of a map of ``photons`` photons."""
+    if settings.max_photon_paths:
+        return settings.max_photon_paths
+    return max(MAX_PATHS_PER_PHOTON * photons, MIN_MAX_PATHS)
+
+
+def trace_maps(scene, settings: Settings, info: SceneInfo, need_global: bool, need_caustic: bool,
+               skipped: list, progress: Progress):
+    """Stage 1: the global and caustic photon maps (empty where not needed)."""
+    global_map = caustic_map = PhotonMap.empty()
+    if need_global:
+        global_map = trace_photons(scene, GLOBAL, settings.global_photons, settings.max_depth,
+                                   settings.seed, max_paths(settings, settings.global_photons),
+                                   progress.photons)
+        progress.done(f"photons ({GLOBAL})", f"{global_map.count} stored")
+    if need_caustic and need_global and global_map.count == 0:
+        # Every caustic photon would also have been stored in the global map.
+        skipped.append("caustic map: no global photon reached a diffuse surface")
+        need_caustic = False
+    if need_caustic:
+        paths = min(max_paths(settings, settings.caustic_photons),
+                    CAUSTIC_PATHS_PER_PHOTON * settings.caustic_photons)
+        caustic_map = trace_photons(scene, CAUSTIC, settings.caustic_photons, settings.max_depth,
+                                    settings.seed, paths, progress.photons, warn=False)
+        progress.done(f"photons ({CAUSTIC})", f"{caustic_map.count} stored")
+        if caustic_map.count < CAUSTIC_MIN_YIELD * settings.caustic_photons and \
+                not info.has_delta_emitter:
+            # Rare caustic paths (an environment light and a small glossy object): a map
+            # of a few thousand photons costs seconds and gives blotches; records gather
+            # those paths instead (see GatherSource). Not with a point, spot or
+            # directional light: no gather ray can hit those, and their caustics would
+            # be lost (a sun through a window onto glass).
+            skipped.append(f"caustic map: only {caustic_map.count} of {settings.caustic_photons} "
+                           f"photons after {caustic_map.paths_emitted} paths; gather rays count "
+                           f"caustic light instead")
+            caustic_map = PhotonMap.empty()
+    return global_map, caustic_map
+
+
+def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caustic_map: PhotonMap,
+               skipped: list) -> dict:
+    """Stage 2: lookup radii, hash grids, and irradiance precomputed at the global
+    photons (what gather rays read). Returns the PreparedScene fields it fills."""
+    global_radius = settings.lookup_radius or adapted_lookup_radius(
+        global_map.position, lookup_radius(info.surface_area, global_map.count, settings.lookup_size),
+        settings.lookup_size)
+    caustic_size = max(1, int(settings.lookup_size * CAUSTIC_LOOKUP_FRACTION))
+    caustic_radius = adapted_lookup_radius(
+        caustic_map.position, lookup_radius(info.surface_area, caustic_map.count, caustic_size),
+        caustic_size)
+    global_map, global_grid = sort_into_grid(global_map, global_radius, settings.lookup_size)
+    caustic_map, caustic_grid = sort_into_grid(caustic_map, caustic_radius, caustic_size)
+    gather_source = None
+    if global_map.count and settings.method == "photon_map" and not settings.final_gather:
+        skipped.append("precomputed irradiance: photon_map without final gathering never reads it")
+    elif global_map.count:
+        depth_limit = None if settings.max_depth == -1 else settings.max_depth - 2
+        # Gather rays read this copy (half the photons, see precompute_irradiance).
+        gather_source = GatherSource.build(
+            precompute_irradiance(global_map, global_radius, settings.lookup_size, depth_limit),
+            global_radius)
+        gather_source.caustics_by_gathering = caustic_map.count == 0
+        if gather_source.photons.count == 0:
+            # A map of a handful of photons (a tiny max_photon_paths) can leave a half
+            # empty: nothing to gather from, so no cache.
+            skipped.append("cache: too few global photons to precompute irradiance")
+            global_map, global_grid, gather_source = PhotonMap.empty(), None, None
+    return dict(global_map=global_map, global_grid=global_grid, caustic_map=caustic_map,
+                caustic_grid=caustic_grid, global_radius=global_radius,
+                caustic_radius=caustic_radius, gather_source=gather_source)
+
+
+def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Progress):
+    """Stage 3: records placed by walking the global photons (Fig. 2), then, for the
+    first-hit estimator, bounded and completed by surface probes; for the final
+    gather, each record's direct irradiance. Returns ``(index, stats)``."""
+    stats = {"records": 0, "records_fallback": 0, "records_probes": 0, "placement_rounds": 0}
+    if settings.method != "pmic":
+        return None, stats
+    photons = prepared.global_map
+    if not photons.count:
+        prepared.skipped.append("cache: no global photons")
+        return None, stats
+    builder = CacheBuilder(scene, settings, prepared)
+    progress.update("cache", 0.05, "placing records at the photons")
+    index, rounds = builder.build_records(photons.position, photons.normal, None)
+    stats["placement_rounds"] = rounds
+    if settings.final_gather_camera:
+        # What a gather hit reflects is all of its light: records keep their direct
+        # irradiance too, so the camera path needs no shadow rays there. Gather hits
+        # closer than a record radius are traced instead: no probes are needed.
+        progress.update("cache", 0.7, f"{index.records.count} records: direct light")
+        index.direct = cache_mod.direct_irradiance(
+            scene, index.records.position, index.records.normal, cache_mod.RECORD_DIRECT_SAMPLES,
+            settings.seed, prepared.ray_offset)
+        dr.eval(index.direct)
+    else:
+        progress.update("cache", 0.5, f"{index.records.count} records: surface probes")
+        before = index.records.count
+        index = builder.complete_with_probes(index)
+        stats["records_probes"] = index.records.count - before
+    stats["records"] = index.records.count
+    progress.done("cache", f"{index.records.count} records")
+    return index, stats
+
+
+class CacheBuilder:
+    """Record placement and computation for one scene (stage 3), shared by the photon
+    walk, the surface probes and the camera-seeded classic cache."""
+
+    def __init__(self, scene: mi.Scene, settings: Settings, prepared: PreparedScene):
+        self.scene = scene
+        self.settings = settings
+        self.prepared = prepared
+        self.offset = prepared.ray_offset
+
+    def index(self, records: CacheRecords) -> RecordIndex:
+        """The lookup structure of ``records``, with visibility tests for records that
+        reach past a surface."""
+        return RecordIndex.build(records, self.settings.max_error, self.scene,
+                                 VISIBILITY_LIFT * self.prepared.global_radius)
+
+    def radius_bounds(self):
+        prepared = self.prepared
+        r_max = R_MAX_DIAGONAL * prepared.length_scale
+        r_min = min(MIN_REACH_LOOKUPS * prepared.global_radius / self.settings.max_error, r_max) \
+            if prepared.global_radius > 0 else 1e-3 * r_max
+        return r_min, r_max
+
+    def pilot_radius(self, p, n, seed_offset: int):
+        """R from a cheap pilot gather, clamped to the world-space bounds."""
+        r_min, r_max = self.radius_bounds()
+        pilot, _ = cache_mod.harmonic_mean_distance(self.scene, p, n, cache_mod.PILOT_STRATA,
+                                                    self.settings.seed + seed_offset, self.offset)
+        return dr.clip(pilot, opaque_float(r_min), opaque_float(r_max))
+
+    def _place(self, cand_p, cand_n, existing: RecordIndex | None):
+        """Pilot radii, then placement (Fig. 2); returns the chosen (p, n, R), rounds."""
+        r_max = self.radius_bounds()[1]
+        pilot = self.pilot_radius(cand_p, cand_n, streams.PLACEMENT_PILOT)
+        step = max(CLAMP_STEP_LOOKUPS * self.prepared.global_radius, r_max / CLAMP_ITERATIONS)
+        pilot = cache_mod.clamp_to_neighbours(cand_p, cand_n, pilot, step,
+                                              int(math.ceil(r_max / step)))
+        dr.eval(pilot)
+        selected, rounds = cache_mod.place_records(cand_p, cand_n, pilot, self.settings.max_error,
+                                                   existing)
+        return (dr.gather(mi.Point3f, cand_p, selected), dr.gather(mi.Vector3f, cand_n, selected),
+                dr.gather(mi.Float, pilot, selected)), rounds
+
+    def build_records(self, cand_p, cand_n, existing: RecordIndex | None, _recursing: bool = False):
+        """Place records among candidates (Fig. 2), compute them, return the index and
+        the number of placement rounds.
+
+        With many candidates the walk visits an evenly spread subset first
+        (``PLACEMENT_SUBSET`` of them) and then only the candidates that the subset's
+        records leave uncovered: the same guarantee (every candidate covered), but
+        pilot rays only where they can matter, so the cost no longer grows with the
+        photon count.
+        """
+        count = dr.width(cand_p.x)
+        placed = CacheRecords.empty() if existing is None else existing.records
+        rounds = 0
+        remaining_p, remaining_n = cand_p, cand_n
+        new_p, new_n, new_r = [], [], []
+        if count > PLACEMENT_SUBSET:
+            subset = every_nth(count, -(-count // PLACEMENT_SUBSET))
+            (p, n, r), k = self._place(dr.gather(mi.Point3f, cand_p, subset),
+                                       dr.gather(mi.Vector3f, cand_n, subset), existing)
+            rounds += k
+            new_p.append(p), new_n.append(n), new_r.append(r)
+            placed = placed.extend(CacheRecords.geometry_only(p, n, r))
+            uncovered = dr.compress(~self.index(placed).covered(cand_p, cand_n))
+            remaining_p = dr.gather(mi.Point3f, cand_p, uncovered)
+            remaining_n = dr.gather(mi.Vector3f, cand_n, uncovered)
+        if dr.width(remaining_p.x):
+            prior = self.index(placed) if placed.count else None
+            (p, n, r), k = self._place(remaining_p, remaining_n, prior)
+            rounds += k
+            new_p.append(p), new_n.append(n), new_r.append(r)
+        p = concat(new_p, mi.Point3f)
+        n = concat(new_n, mi.Vector3f)
+        r = concat(new_r, mi.Float)
+        before = existing.records.count if existing is not None else 0
+        records = cache_mod.compute_records(self.scene, self.prepared.gather_source, p, n, r,
+                                            self.settings.gather_strata,
+                                            self.settings.seed + streams.RECORDS + before, self.offset)
+        all_records = existing.records.extend(records) if existing is not None else records
+        index = self.index(all_records)
+        # Placement tests coverage without visibility (the records' gathers, which tell
+        # which records reach past a surface, come after it): candidates covered only
+        # by records they cannot see get records of their own. A record covers its own
+        # candidate, so one pass settles it.
+        lost = dr.compress(~index.covered(cand_p, cand_n))
+        if dr.width(lost) and not _recursing:
+            index, more = self.build_records(dr.gather(mi.Point3f, cand_p, lost),
+                                             dr.gather(mi.Vector3f, cand_n, lost), index,
+                                             _recursing=True)
+            rounds += more
+        return index, rounds
+
+    def complete_with_probes(self, index: RecordIndex) -> RecordIndex:
+        """Surface probes (first-hit estimator): records may not reach a probe further
+        than its own pilot radius plus their distance (neighbour clamping against the
+        surfaces photons barely reach: the gap between a light and the ceiling), and
+        probes that no record is near get records (surfaces no photon reached). Every
+        photon stays covered. View independent: the same for every camera."""
+        photons = self.prepared.global_map
+        probe_p, probe_n = surface_probes(self.scene, _probe_count(photons.count),
+                                          self.settings.seed)
+        if not dr.width(probe_p.x):
+            return index
+        # Only probes among the photons: a vast ground plane far from the light would
+        # otherwise fill with records of nearly nothing (the photon map covers it).
+        lo, hi = _bounds(photons.position, 2.0 * self.prepared.global_radius)
+        inside = dr.compress(dr.all((probe_p >= lo) & (probe_p <= hi)))
+        probe_p, probe_n = dr.gather(mi.Point3f, probe_p, inside), dr.gather(mi.Vector3f, probe_n, inside)
+        if not dr.width(probe_p.x):
+            return index
+        clamp = every_nth(dr.width(probe_p.x), PROBE_CLAMP_STRIDE)
+        clamp_p = dr.gather(mi.Point3f, probe_p, clamp)
+        clamp_n = dr.gather(mi.Vector3f, probe_n, clamp)
+        raw, _ = cache_mod.harmonic_mean_distance(self.scene, clamp_p, clamp_n, cache_mod.PILOT_STRATA,
+                                                  self.settings.seed + streams.PROBE_PILOT, self.offset)
+        # Probes that no camera can see (a floor under a block resting on it: every
+        # pilot ray hits within a hair) must not shrink the records beside them.
+        seen = dr.compress(raw > opaque_float(ENCLOSED_OFFSETS * self.offset))
+        r_min, r_max = self.radius_bounds()
+        clamp_p, clamp_n = dr.gather(mi.Point3f, clamp_p, seen), dr.gather(mi.Vector3f, clamp_n, seen)
+        clamp_r = dr.clip(dr.gather(mi.Float, raw, seen), opaque_float(PROBE_FLOOR * r_min), opaque_float(r_max))
+        for _ in range(PROBE_CLAMP_PASSES):
+            shrunk = cache_mod.clamp_records_to_points(
+                index, clamp_p, clamp_n, clamp_r, self.scene,
+                VISIBILITY_LIFT * self.prepared.global_radius)
+            if shrunk is None:
+                break
+            records = index.records
+            # Only photons within the old reach of a shrunk record can have lost cover.
+            was = dr.compress(shrunk < records.radius)
+            old_reach = BallGrid.build(dr.gather(mi.Point3f, records.position, was),
+                                       dr.gather(mi.Float, records.radius, was) * self.settings.max_error)
+            near = _inside_any(old_reach, photons.position)
+            records.radius = shrunk
+            index = self.index(records)
+            lost = dr.compress(near & ~index.covered(photons.position, photons.normal, near))
+            if dr.width(lost):
+                index, _ = self.build_records(dr.gather(mi.Point3f, photons.position, lost),
+                                              dr.gather(mi.Vector3f, photons.normal, lost), index)
+        uncovered = dr.compress(~index.covered(probe_p, probe_n))
+        if dr.width(uncovered):
+            index, _ = self.build_records(dr.gather(mi.Point3f, probe_p, uncovered),
+                                          dr.gather(mi.Vector3f, probe_n, uncovered), index)
+        return index
+
+
+def _probe_count(photons: int) -> int:
+    return int(min(max(PROBES_PER_PHOTON * photons, MIN_PROBES), MAX_PROBES))
+
+
+def _bounds(points: mi.Point3f, margin: float):
+    """Bounding box of ``points``, grown by ``margin``, as two Python-side points."""
+    lo = [float(dr.min(c)[0]) - margin for c in (points.x, points.y, points.z)]
+    hi = [float(dr.max(c)[0]) + margin for c in (points.x, points.y, points.z)]
+    return mi.Point3f(*lo), mi.Point3f(*hi)
+
+
+def _shape_area(shape) -> float:
+    try:
+        a = float(dr.sum(shape.surface_area())[0])
+    except Exception:  # instances and shape groups have no area of their own
+        return 0.0
+    return a if math.isfinite(a) and a > 0 else 0.0
+
+
+def _bsdf_flags(shape) -> int:
+    bsdf = shape.bsdf()
+    return int(bsdf.flags()) if bsdf is not None else 0
+
+
+def surface_probes(scene: mi.Scene, count: int, seed: int):
+    """About ``count`` points sampled uniformly by area over every surface with a
+    diffuse lobe, each with the normal of the side that reflects (both sides of a
+    ``twosided`` BSDF). Returns ``(p, n)``; deterministic in ``seed``."""
+    shapes = [(s, _shape_area(s)) for s in scene.shapes()
+              if _bsdf_flags(s) & int(mi.BSDFFlags.Diffuse)]
+    shapes = [(s, a) for s, a in shapes if a > 0]
+    total = sum(a for _, a in shapes)
+    ps, ns = [], []
+    first = 0
+    for shape, area in shapes:
+        k = int(round(count * area / total)) if total > 0 else 0
+        if k == 0:
+            continue
+        rng = make_rng(k, seed, stream=streams.SURFACE_PROBES + first)
+        first += k
+        try:
+            sample = shape.sample_position(0.0, mi.Point2f(rng.next_float32(), rng.next_float32()))
+        except Exception:  # pragma: no cover - a shape without position sampling
+            continue
+        normal = mi.Vector3f(sample.n)
+        ok = dr.compress(dr.all(dr.isfinite(sample.p)) & (dr.squared_norm(normal) > 0))
+        p = dr.gather(mi.Point3f, sample.p, ok)
+        n = dr.normalize(dr.gather(mi.Vector3f, normal, ok))
+        ps.append(p), ns.append(n)
+        if _bsdf_flags(shape) & int(mi.BSDFFlags.BackSide):
+            ps.append(p), ns.append(-n)
+    if not ps:
+        return mi.Point3f(), mi.Vector3f()
+    p, n = concat(ps, mi.Point3f), concat(ns, mi.Vector3f)
+    dr.eval(p, n)
+    return p, n
+
+
+# ----------------------------------------------------------------------------------------
+# The classic cache (method irradiance_cache): records placed from one camera
+# ----------------------------------------------------------------------------------------
+def camera_points(scene: mi.Scene, sensor: mi.Sensor, seed: int):
+    """First surface with a diffuse lobe seen through each pixel centre."""
+    film = sensor.film()
+    size = film.crop_size()
+    w, h = int(size[0]), int(size[1])
+    idx = dr.arange(mi.UInt32, w * h)
+    pos = mi.Vector2f(mi.Float(idx % w) + 0.5, mi.Float(idx // w) + 0.5) / mi.Vector2f(w, h)
+    ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5), pos, mi.Point2f(0.5, 0.5))
+    rng = make_rng(w * h, seed, stream=streams.CAMERA_POINTS)
+    p, n, found = _first_diffuse_hit(scene, mi.Ray3f(ray), rng)
+    keep = dr.compress(found)
+    return dr.gather(mi.Point3f, p, keep), dr.gather(mi.Vector3f, n, keep)
+
+
+def camera_seeded_index(scene: mi.Scene, sensor: mi.Sensor, settings: Settings,
+                        prepared: PreparedScene):
+    """The classic Ward cache of one view: records placed at what ``sensor`` sees.
+    Returns ``(index, rounds)``; ``prepared`` is not changed."""
+    cam_p, cam_n = camera_points(scene, sensor, settings.seed)
+    return CacheBuilder(scene, settings, prepared).build_records(cam_p, cam_n, None)
+
+
+@dr.syntax
+def _first_diffuse_hit(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32):
+    """Follow delta/glossy bounces from ``ray`` to the first surface with a diffuse lobe."""
+    lanes = dr.width(ray.o)
+    active = dr.full(mi.Bool, True, lanes)
+    found = dr.zeros(mi.Bool, lanes)
+    p = dr.zeros(mi.Point3f, lanes)
+    n = dr.zeros(mi.Vector3f, lanes)
+    bounce = dr.zeros(mi.UInt32, lanes)
+    ctx_rest = non_diffuse_context()
+    while dr.hint(active, label="camera_first_diffuse", max_iterations=8):
+        si = scene.ray_intersect(ray, active)
+        active &= si.is_valid()
+        bsdf = si.bsdf(ray)
+        flags = bsdf.flags()
+        hit = active & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
+        normal = mi.Vector3f(si.n)
+        normal = dr.select(dr.dot(normal, ray.d) > 0, -normal, normal)
+        p = dr.select(hit, si.p, p)
+        n = dr.select(hit, normal, n)
+        found |= hit
+        bs, _ = bsdf.sample(ctx_rest, si, rng.next_float32(),
+                            mi.Point2f(rng.next_float32(), rng.next_float32()), active & ~hit)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        bounce += 1
+        active &= ~hit & (bs.pdf > 0) & (bounce < 8)
+    return p, n, found
+
+
+def _inside_any(grid: BallGrid, points: mi.Point3f) -> mi.Bool:
+    """Mask of points inside the bounding cells of some ball of ``grid``: a cheap,
+    conservative pre-filter (a point in no ball's cells is in no ball)."""
+    return grid.for_each_ball(points, dr.zeros(mi.Bool, dr.width(points.x)),
+                              lambda hit, index, valid: hit | valid, finished=lambda hit: hit,
+                              label="inside_any_ball")

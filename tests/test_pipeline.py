@@ -1,0 +1,128 @@
+"""Stages 1-3 on their own (pipeline.prepare, no camera), the surface probes, the
+nearest-photon search steps of gather rays, and the named random streams."""
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from pmic_integrator import gather, pipeline, streams
+from pmic_integrator.settings import Settings
+
+from scene_builders import SMALL_PMIC, cornell
+
+
+def settings(**params):
+    props = mi.Properties()
+    for key, value in {**SMALL_PMIC, **params}.items():
+        props[key] = value
+    return Settings.parse(props)
+
+
+def test_prepare_needs_no_camera_and_covers_every_photon():
+    scene_dict = cornell(16)
+    scene_dict.pop("sensor")
+    scene = mi.load_dict(scene_dict)
+    prepared = pipeline.prepare(scene, settings(estimator="first_hit"))
+    assert prepared.global_map.count == SMALL_PMIC["global_photons"]
+    assert prepared.index is not None and prepared.stats["records"] == prepared.index.records.count
+    assert 0 < prepared.stats["records_probes"] < prepared.stats["records"]
+    covered = prepared.index.covered(prepared.global_map.position, prepared.global_map.normal)
+    assert bool(dr.all(covered))
+    # Same scene, settings and seed: the same cache, bit for bit.
+    again = pipeline.prepare(scene, settings(estimator="first_hit"))
+    np.testing.assert_array_equal(np.array(again.index.records.irradiance),
+                                  np.array(prepared.index.records.irradiance))
+
+
+def test_failed_stage_publishes_nothing(monkeypatch):
+    scene = mi.load_dict(cornell(16))
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        raise RuntimeError("simulated failure in stage 3")
+
+    monkeypatch.setattr(pipeline.CacheBuilder, "build_records", failing)
+    integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC})
+    with pytest.raises(RuntimeError, match="simulated"):
+        integrator.build_cache(scene)
+    assert calls and integrator.prepared is None
+
+
+def _probe_scene(twosided: bool):
+    bsdf = {"type": "diffuse"}
+    return mi.load_dict({
+        "type": "scene",
+        # A 2x2 square (area 4) facing +z, and a 1x1 one (area 1) at z = 1.
+        "big": {"type": "rectangle", "bsdf": {"type": "twosided", "b": bsdf} if twosided else bsdf},
+        # (Another BSDF, so that Mitsuba does not merge the two meshes into one.)
+        "small": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": 0.3},
+                  "to_world": mi.ScalarTransform4f().translate([0, 0, 1]).scale(0.5)},
+        "mirror": {"type": "sphere", "center": [5, 0, 0], "radius": 0.5,
+                   "bsdf": {"type": "conductor"}},
+    })
+
+
+@pytest.mark.parametrize("twosided", [False, True])
+def test_surface_probes_follow_area_and_sides(twosided):
+    p, n = pipeline.surface_probes(_probe_scene(twosided), 5000, seed=0)
+    p, n = np.array(p).T, np.array(n).T
+    big = np.abs(p[:, 2]) < 1e-5
+    small = np.abs(p[:, 2] - 1) < 1e-5
+    assert big.sum() + small.sum() == len(p), p[~big & ~small][:5]  # none on the sphere
+    assert np.all(np.abs(p[big, :2]) <= 1) and np.all(np.abs(p[small, :2]) <= 0.5)
+    # 4000 + 1000 points by area; the twosided square gets each point on both sides.
+    assert small.sum() == 1000 and big.sum() == (8000 if twosided else 4000)
+    assert np.all(n[small] == [0, 0, 1])
+    assert (n[big, 2] < 0).sum() == (4000 if twosided else 0)
+    # Deterministic in the seed, different across seeds.
+    again = np.array(pipeline.surface_probes(_probe_scene(twosided), 5000, seed=0)[0]).T
+    other = np.array(pipeline.surface_probes(_probe_scene(twosided), 5000, seed=1)[0]).T
+    np.testing.assert_array_equal(again, p)
+    assert not np.array_equal(other, p)
+
+
+def test_gather_search_steps_lose_no_photon():
+    """The first search step visits 2x2x2 cells only: it must find exactly what a
+    search of all 27 cells within the same reach finds; and the two steps together
+    find a photon wherever one search over the full reach does."""
+    from pmic_integrator.irradiance import nearest_photon
+
+    scene = mi.load_dict(cornell(16))
+    prepared = pipeline.prepare(scene, settings(method="photon_map", final_gather=True))
+    source = prepared.gather_source
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ray = mi.Ray3f(mi.Point3f(0.0, 0.3, 0.0), mi.Vector3f(d.T))
+    si = scene.ray_intersect(ray)
+    n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)
+    photons, grid, reach, octant = source._steps()[0]
+    assert octant and reach == 0.5 * grid.cell_size
+    fast = nearest_photon(photons, grid, si.p, n, reach, si.is_valid(), octant=True)
+    full = nearest_photon(photons, grid, si.p, n, reach, si.is_valid(), octant=False)
+    found = np.array(full[1])
+    assert found.mean() > 0.8
+    np.testing.assert_array_equal(np.array(fast[1]), found)
+    np.testing.assert_array_equal(np.array(fast[0])[found], np.array(full[0])[found])
+    stepped = np.array(source.irradiance_at(scene, si, n, si.is_valid()))
+    wide = gather.GatherSource(source.photons, source.grid, source.radius)
+    single = np.array(wide.irradiance_at(scene, si, n, si.is_valid()))
+    np.testing.assert_array_equal(stepped.sum(0) > 0, single.sum(0) > 0)
+
+
+def test_render_rng_follows_the_sampler_seed():
+    def numbers(seed):
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(seed, 64)
+        return np.array(streams.render_rng(sampler, 64).next_float32())
+
+    np.testing.assert_array_equal(numbers(3), numbers(3))
+    assert not np.array_equal(numbers(3), numbers(4))
+    assert len(np.unique(numbers(3))) == 64
+
+
+def test_photon_seeds_keep_maps_and_batches_apart():
+    seeds = {streams.photon_batch_seed(seed, batch, caustic)
+             for seed in range(3) for batch in range(100) for caustic in (False, True)}
+    assert len(seeds) == 600
