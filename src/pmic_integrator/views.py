@@ -46,10 +46,49 @@ def build_cache_file(scene_file, cache_file, integrator: dict | None = None, var
     return stats
 
 
+#: Per worker process: the scene and the integrator (with its loaded cache) of the last
+#: (scene file, cache, settings, variant), so that a worker's later views skip loading
+#: the scene, reading the cache and compiling the scene's kernels again.
+_WORKER_CACHE: dict = {}
+
+
+def _worker_scene(scene_file: str, cache_bytes: bytes, integrator: dict, variant: str,
+                  load_args: dict):
+    import hashlib
+
+    key = (scene_file, hashlib.blake2b(cache_bytes, digest_size=16).hexdigest(),
+           repr(sorted(integrator.items())), variant, repr(sorted(load_args.items())))
+    if key not in _WORKER_CACHE:
+        _WORKER_CACHE.clear()
+        folder = tempfile.mkdtemp(prefix="pmic-view-")
+        path = os.path.join(folder, "cache.npz")
+        Path(path).write_bytes(cache_bytes)
+        _WORKER_CACHE[key] = _scene(scene_file, {**integrator, "type": "pmic", "cache_file": path},
+                                    load_args)
+    return _WORKER_CACHE[key]
+
+
+def _warm_up(scene_file: str, variant: str, load_args: dict, _index: int) -> bool:
+    """Start Mitsuba and Dr.Jit on a worker and read the scene once, while the main
+    process builds the cache."""
+    import pmic_integrator  # noqa: F401
+    import mitsuba as mi
+    import drjit as dr
+
+    mi.set_variant(variant)
+    pmic_integrator.register(variant)
+    threads = os.environ.get("PMIC_JIT_THREADS")
+    if threads:
+        dr.set_thread_count(int(threads))
+    mi.load_file(str(scene_file), **load_args)
+    return True
+
+
 def render_one(scene_file: str, cache_bytes: bytes, sensor: int, spp: int, seed: int,
                integrator: dict, variant: str, load_args: dict):
-    """One view, on a worker: the scene from its file, the cache from ``cache_bytes``;
-    returns (sensor, image as a float32 array, seconds)."""
+    """One view, on a worker: the scene from its file, the cache from ``cache_bytes``
+    (both kept for the worker's next views); returns (sensor, image as a float32
+    array, seconds)."""
     import pmic_integrator  # noqa: F401
     import mitsuba as mi
     import numpy as np
@@ -57,15 +96,17 @@ def render_one(scene_file: str, cache_bytes: bytes, sensor: int, spp: int, seed:
     mi.set_variant(variant)
     # Registered explicitly: a worker thread may not have seen the variant callback.
     pmic_integrator.register(variant)
+    threads = os.environ.get("PMIC_JIT_THREADS")
+    if threads:
+        import drjit as dr
+
+        dr.set_thread_count(int(threads))
     start = time.perf_counter()
-    with tempfile.TemporaryDirectory() as folder:
-        path = os.path.join(folder, "cache.npz")
-        Path(path).write_bytes(cache_bytes)
-        scene, pmic = _scene(scene_file, {**integrator, "type": "pmic", "cache_file": path}, load_args)
-        image = np.array(mi.render(scene, integrator=pmic, sensor=int(sensor), spp=int(spp),
-                                   seed=int(seed)), dtype=np.float32)
-        if "cache_loaded_from" not in pmic.stats:  # pragma: no cover - a broken set-up
-            raise RuntimeError(f"render_views: worker rebuilt the cache for sensor {sensor}")
+    scene, pmic = _worker_scene(scene_file, cache_bytes, integrator, variant, load_args)
+    image = np.array(mi.render(scene, integrator=pmic, sensor=int(sensor), spp=int(spp),
+                               seed=int(seed)), dtype=np.float32)
+    if "cache_loaded_from" not in pmic.stats:  # pragma: no cover - a broken set-up
+        raise RuntimeError(f"render_views: worker rebuilt the cache for sensor {sensor}")
     return int(sensor), image, time.perf_counter() - start
 
 
@@ -90,28 +131,36 @@ def render_views(scene_file, sensors=None, spp: int = 16, seed: int = 0, integra
     if isinstance(spp, bool) or int(spp) != spp or spp < 1:
         raise ValueError(f"render_views: 'spp' must be a positive integer, got {spp!r}")
     spec = {k: v for k, v in (integrator or {}).items() if k not in ("type", "cache_file")}
-    with tempfile.TemporaryDirectory() as folder:
-        path = Path(cache_file) if cache_file else Path(folder) / "cache.npz"
-        if not path.exists():
-            build_cache_file(scene_file, path, spec, variant, progress, **load_args)
-        cache_bytes = path.read_bytes()
-    if sensors is None:
-        import pmic_integrator  # noqa: F401
-        import mitsuba as mi
-
-        mi.set_variant(variant)
-        sensors = range(len(mi.load_file(str(scene_file), **load_args).sensors()))
-    sensors = [int(s) for s in sensors]
-
     own_cluster = None
     if client is None:
         if scheduler is not None:
             client = Client(scheduler)
         else:
+            # Each worker's Dr.Jit gets its share of this machine's cores: two workers
+            # with a full thread pool each would fight over them.
+            jit_threads = max(1, (os.cpu_count() or 1) // max(1, n_workers))
             own_cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker,
-                                       processes=True, dashboard_address=None)
+                                       processes=True, dashboard_address=None,
+                                       env={"PMIC_JIT_THREADS": str(jit_threads)})
             client = Client(own_cluster)
     try:
+        # Workers start Mitsuba and read the scene while the cache is built here.
+        workers = max(1, len(client.scheduler_info().get("workers", {})))
+        warm = [client.submit(_warm_up, str(scene_file), variant, load_args, i, pure=False)
+                for i in range(workers)]
+        with tempfile.TemporaryDirectory() as folder:
+            path = Path(cache_file) if cache_file else Path(folder) / "cache.npz"
+            if not path.exists():
+                build_cache_file(scene_file, path, spec, variant, progress, **load_args)
+            cache_bytes = path.read_bytes()
+        if sensors is None:
+            import pmic_integrator  # noqa: F401
+            import mitsuba as mi
+
+            mi.set_variant(variant)
+            sensors = range(len(mi.load_file(str(scene_file), **load_args).sensors()))
+        sensors = [int(s) for s in sensors]
+        client.gather(warm)
         shipped = client.scatter(cache_bytes, broadcast=True)
         futures = [client.submit(render_one, str(scene_file), shipped, s, spp, seed, spec, variant,
                                  load_args, pure=False) for s in sensors]
