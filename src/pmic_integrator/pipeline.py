@@ -425,12 +425,17 @@ class CacheBuilder:
             if prepared.global_radius > 0 else 1e-3 * r_max
         return r_min, r_max
 
+    def pilot_distance(self, p, n, seed_offset: int):
+        """The harmonic mean distance of a cheap pilot gather at each (p, n)."""
+        pilot, _ = cache_mod.harmonic_mean_distance(self.scene, p, n, cache_mod.PILOT_STRATA,
+                                                    self.settings.seed + seed_offset, self.offset)
+        return pilot
+
     def pilot_radius(self, p, n, seed_offset: int):
         """R from a cheap pilot gather, clamped to the world-space bounds."""
         r_min, r_max = self.radius_bounds()
-        pilot, _ = cache_mod.harmonic_mean_distance(self.scene, p, n, cache_mod.PILOT_STRATA,
-                                                    self.settings.seed + seed_offset, self.offset)
-        return dr.clip(pilot, opaque_float(r_min), opaque_float(r_max))
+        return dr.clip(self.pilot_distance(p, n, seed_offset), opaque_float(r_min),
+                       opaque_float(r_max))
 
     def _place(self, cand_p, cand_n, existing: RecordIndex | None):
         """Pilot radii, then placement (Fig. 2); returns the chosen (p, n, R), rounds."""
@@ -517,8 +522,7 @@ class CacheBuilder:
         clamp = every_nth(dr.width(probe_p.x), PROBE_CLAMP_STRIDE)
         clamp_p = dr.gather(mi.Point3f, probe_p, clamp)
         clamp_n = dr.gather(mi.Vector3f, probe_n, clamp)
-        raw, _ = cache_mod.harmonic_mean_distance(self.scene, clamp_p, clamp_n, cache_mod.PILOT_STRATA,
-                                                  self.settings.seed + streams.PROBE_PILOT, self.offset)
+        raw = self.pilot_distance(clamp_p, clamp_n, streams.PROBE_PILOT)
         # Probes that no camera can see (a floor under a block resting on it: every
         # pilot ray hits within a hair) must not shrink the records beside them.
         seen = dr.compress(raw > opaque_float(ENCLOSED_OFFSETS * self.offset))

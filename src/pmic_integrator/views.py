@@ -71,7 +71,17 @@ def _worker_scene(scene_file: str, cache_bytes: bytes, integrator: dict, variant
 def _warm_up(scene_file: str, variant: str, load_args: dict, _index: int) -> bool:
     """Start Mitsuba and Dr.Jit on a worker and read the scene once, while the main
     process builds the cache."""
-    import pmic_integrator  # noqa: F401
+    import mitsuba as mi
+
+    _set_up_worker(variant)
+    mi.load_file(str(scene_file), **load_args)
+    return True
+
+
+def _set_up_worker(variant: str):
+    """The variant, pmic registered for it (a worker thread may not have seen the
+    variant callback), and this worker's share of Dr.Jit threads."""
+    import pmic_integrator
     import mitsuba as mi
     import drjit as dr
 
@@ -80,8 +90,6 @@ def _warm_up(scene_file: str, variant: str, load_args: dict, _index: int) -> boo
     threads = os.environ.get("PMIC_JIT_THREADS")
     if threads:
         dr.set_thread_count(int(threads))
-    mi.load_file(str(scene_file), **load_args)
-    return True
 
 
 def render_one(scene_file: str, cache_bytes: bytes, sensor: int, spp: int, seed: int,
@@ -89,18 +97,10 @@ def render_one(scene_file: str, cache_bytes: bytes, sensor: int, spp: int, seed:
     """One view, on a worker: the scene from its file, the cache from ``cache_bytes``
     (both kept for the worker's next views); returns (sensor, image as a float32
     array, seconds)."""
-    import pmic_integrator  # noqa: F401
     import mitsuba as mi
     import numpy as np
 
-    mi.set_variant(variant)
-    # Registered explicitly: a worker thread may not have seen the variant callback.
-    pmic_integrator.register(variant)
-    threads = os.environ.get("PMIC_JIT_THREADS")
-    if threads:
-        import drjit as dr
-
-        dr.set_thread_count(int(threads))
+    _set_up_worker(variant)
     start = time.perf_counter()
     scene, pmic = _worker_scene(scene_file, cache_bytes, integrator, variant, load_args)
     image = np.array(mi.render(scene, integrator=pmic, sensor=int(sensor), spp=int(spp),
