@@ -578,13 +578,23 @@ def _bsdf_flags(shape) -> int:
     return int(bsdf.flags()) if bsdf is not None else 0
 
 
+def _shape_order(shape_and_area):
+    """A key that orders shapes by what they are, not by when they were loaded."""
+    shape, area = shape_and_area
+    box = shape.bbox()
+    return (shape.id(), type(shape).__name__, area, tuple(box.min), tuple(box.max),
+            _bsdf_flags(shape), shape.primitive_count())
+
+
 def surface_probes(scene: mi.Scene, count: int, seed: int):
     """About ``count`` points sampled uniformly by area over every surface with a
     diffuse lobe, each with the normal of the side that reflects (both sides of a
     ``twosided`` BSDF). Returns ``(p, n)``; deterministic in ``seed``."""
     shapes = [(s, _shape_area(s)) for s in scene.shapes()
               if _bsdf_flags(s) & int(mi.BSDFFlags.Diffuse)]
-    shapes = [(s, a) for s, a in shapes if a > 0]
+    # Mitsuba loads a scene's children in parallel: ``scene.shapes()`` comes in a
+    # different order from one load to the next, and so would the probes.
+    shapes = sorted(((s, a) for s, a in shapes if a > 0), key=_shape_order)
     total = sum(a for _, a in shapes)
     ps, ns = [], []
     first = 0
