@@ -136,6 +136,29 @@ def test_interpolation_matches_brute_force_ward_formula():
     assert (got[~want_cov] == 0).all()
 
 
+def test_coverage_index_answers_as_the_lookup_index():
+    """The cheap index used while building (default cells, no backup grid) must give
+    exactly the lookup index's coverage; it cannot interpolate."""
+    a = 0.6
+    p, nrm, r, e, gt, gr = _random_records(300, 3)
+    records = CacheRecords(mi.Point3f(p.T), mi.Vector3f(nrm.T), mi.Float(r), mi.Color3f(e.T),
+                           tuple(mi.Vector3f(g.T) for g in gt), tuple(mi.Vector3f(g.T) for g in gr))
+    lookup, coverage = RecordIndex.build(records, a), RecordIndex.build(records, a, lookup=False)
+    assert coverage.backup_grid is None and coverage.grid.entries < lookup.grid.entries / 4
+    rng = np.random.default_rng(4)
+    x = rng.random((4000, 3)).astype(np.float32)
+    x[:, 2] *= 0.05
+    qn = mi.Vector3f(np.tile([0.0, 0.0, 1.0], (4000, 1)).T.astype(np.float32))
+    want = np.array(lookup.covered(mi.Point3f(x.T), qn))
+    assert 0.3 < want.mean() < 1.0
+    np.testing.assert_array_equal(np.array(coverage.covered(mi.Point3f(x.T), qn)), want)
+    with pytest.raises(RuntimeError, match="for_lookup"):
+        coverage.interpolate(mi.Point3f(x.T), qn)
+    again = coverage.for_lookup()
+    np.testing.assert_array_equal(np.array(again.interpolate(mi.Point3f(x.T), qn)[0]),
+                                  np.array(lookup.interpolate(mi.Point3f(x.T), qn)[0]))
+
+
 def test_weight_falls_continuously_to_zero_at_the_reach():
     a = 0.5
     err = mi.Float(np.linspace(0.45, 0.55, 101).astype(np.float32))

@@ -495,7 +495,9 @@ class RecordIndex:
     records: CacheRecords
     max_error: float
     grid: BallGrid  #: balls of radius a·R
-    backup_grid: BallGrid  #: balls of radius BACKUP_REACH·a·R, for gaps
+    #: Balls of radius BACKUP_REACH·a·R, for gaps; None in the indices used while the
+    #: cache is being built, which only test coverage.
+    backup_grid: BallGrid | None
     scene: object = None  #: for visibility tests of records reaching past a surface
     lift: float = 0.0  #: how far those tests start off the surfaces
     #: Direct irradiance at each record (final gather: the gather hit reflects all of
@@ -503,13 +505,32 @@ class RecordIndex:
     direct: mi.Color3f = None
 
     @staticmethod
-    def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0) -> "RecordIndex":
+    def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0,
+              lookup: bool = True) -> "RecordIndex":
+        """The index of ``records``. With ``lookup`` (for rendering: interpolation and
+        :meth:`near`), grids of small cells and the backup grid; without, one grid of
+        the default cells, which answers :meth:`covered` alike at a tenth of the cost
+        (coverage is a yes/no test, whatever the cells; the interpolated sums follow
+        the cells' order, so every rendered index is built with ``lookup``)."""
         def grid(reach):
-            cell = CELL_PER_REACH * float(dr.mean(reach)[0]) if records.count else None
+            cell = CELL_PER_REACH * float(dr.mean(reach)[0]) if records.count and lookup else None
             return BallGrid.build(records.position, reach, cell_size=cell)
 
         reach = records.radius * max_error
-        return RecordIndex(records, max_error, grid(reach), grid(reach * BACKUP_REACH), scene, lift)
+        backup = grid(reach * BACKUP_REACH) if lookup else None
+        return RecordIndex(records, max_error, grid(reach), backup, scene, lift)
+
+    def for_lookup(self) -> "RecordIndex":
+        """This index with the lookup grids (see :meth:`build`); itself if it has them."""
+        if self.backup_grid is not None:
+            return self
+        index = RecordIndex.build(self.records, self.max_error, self.scene, self.lift)
+        index.direct = self.direct
+        return index
+
+    def _require_lookup(self):
+        if self.backup_grid is None:
+            raise RuntimeError("RecordIndex built with lookup=False: call for_lookup() first")
 
     def _visibility(self):
         if self.scene is None or self.records.obstacle is None:
@@ -525,6 +546,7 @@ class RecordIndex:
     def near(self, x, n, active=True) -> mi.Bool:
         """Is (x, n) within BACKUP_REACH × a·R of some record that sees it? Where it
         is, interpolation finds records (see :meth:`interpolate`)."""
+        self._require_lookup()
         r = self.records
         return _covered_by(r.position, r.normal, r.radius, self.backup_grid, x, n,
                            self.max_error * BACKUP_REACH, active, visibility=self._visibility())
@@ -581,6 +603,7 @@ class RecordIndex:
         if self.records.count == 0:
             zero = dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes)
             return zero + (dr.zeros(mi.Float, lanes),) if with_radius else zero
+        self._require_lookup()
         active = mi.Bool(active)
         total, weight_sum, radius_sum = self._weighted_sum(self.grid, self.max_error, x, n, active,
                                                            "cache_interpolation")

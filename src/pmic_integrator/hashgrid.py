@@ -86,22 +86,37 @@ def _bucket_sort(bucket: mi.UInt32, table_size: int):
     return cell_start, order
 
 
-def _scan_cell(cell_start, keys, positions, index_of, bucket, visited_key, query, radius2,
-               state, visit, active, finished, with_offset, label):
-    """Call ``visit`` for the entries of one bucket that belong to the visited cell
-    (``keys`` equal to ``visited_key``) and lie within the squared radius.
-    ``index_of(entry, valid)`` turns an entry into the index reported to ``visit``."""
-    entry = dr.gather(mi.UInt32, cell_start, bucket, active)
-    end = dr.gather(mi.UInt32, cell_start, bucket + 1, active)
+def _scan_cells(cell_start, keys, positions, index_of, cell, cells: int, query, radius2,
+                state, visit, active, finished, with_offset, label):
+    """Call ``visit`` for the entries within the squared radius of ``cells`` grid
+    cells, one cell after the other: ``cell(j)`` gives the bucket and the key of each
+    lane's j-th cell, and only entries of a bucket whose ``keys`` equal the cell's are
+    visited. ``index_of(entry, valid)`` turns an entry into the index reported to
+    ``visit``.
 
-    def cond(entry, end, state):
-        running = active & (entry < end)
+    One loop walks all the cells: each lane moves on to its next cell as soon as it
+    is done with one (a loop per cell made every lane wait for the slowest at each of
+    them), and the loop is traced once instead of once per cell (tracing 27 loops per
+    lookup was most of the fixed cost of a record gather). Entries are visited in the
+    same order either way."""
+    def load(j, mask):
+        bucket, key = cell(j)
+        return (dr.gather(mi.UInt32, cell_start, bucket, mask),
+                dr.gather(mi.UInt32, cell_start, bucket + 1, mask), key)
+
+    entry, end, key = load(dr.zeros(mi.UInt32, dr.width(active)), active)
+    limit = opaque_u32(cells)
+    following = dr.full(mi.UInt32, 1, dr.width(active))
+
+    def cond(following, entry, end, key, state):
+        running = active & ((entry < end) | (following < limit))
         if finished is not None:
             running &= ~finished(state)
         return running
 
-    def body(entry, end, state):
-        same_cell = dr.gather(mi.UInt32, keys, entry) == visited_key
+    def body(following, entry, end, key, state):
+        in_cell = entry < end
+        same_cell = in_cell & (dr.gather(mi.UInt32, keys, entry, in_cell) == key)
         p = dr.gather(mi.Point3f, positions, entry, same_cell)
         d = p - query
         dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
@@ -109,10 +124,24 @@ def _scan_cell(cell_start, keys, positions, index_of, bucket, visited_key, query
         index = index_of(entry, valid)
         state = visit(state, index, dist2, valid, d) if with_offset else \
             visit(state, index, dist2, valid)
-        return entry + 1, end, state
+        entry = dr.select(in_cell, entry + 1, entry)
+        move_on = (entry >= end) & (following < limit)
+        next_entry, next_end, next_key = load(following, move_on)
+        entry = dr.select(move_on, next_entry, entry)
+        end = dr.select(move_on, next_end, end)
+        key = dr.select(move_on, next_key, key)
+        following = dr.select(move_on, following + 1, following)
+        return following, entry, end, key, state
 
-    _, _, state = dr.while_loop(state=(entry, end, state), cond=cond, body=body, label=label)
+    state = dr.while_loop(state=(following, entry, end, key, state), cond=cond, body=body,
+                          label=label)[-1]
     return state
+
+
+def _neighbour_offset(j: mi.UInt32) -> mi.Vector3i:
+    """The j-th of the 3×3×3 cells around a cell (x fastest), as an offset."""
+    j = mi.Int32(j)
+    return mi.Vector3i(j % 3 - 1, (j // 3) % 3 - 1, j // 9 - 1)
 
 
 @dataclass
@@ -200,23 +229,24 @@ class PointGrid:
             # the query lies in the query's cell and those neighbours.
             frac = (query - origin) * inv - mi.Vector3f(center)
             toward = mi.Vector3i(dr.select(frac >= 0.5, 1, -1))
-            offsets = [mi.Vector3i(toward.x * (j & 1), toward.y * ((j >> 1) & 1), toward.z * (j >> 2))
-                       for j in range(8)]
-        else:
-            offsets = [mi.Vector3i((j % 3) - 1, ((j // 3) % 3) - 1, (j // 9) - 1) for j in range(27)]
 
-        # One loop per neighbour cell, unrolled in Python: the loop body then holds
-        # only the per-candidate work (no per-iteration cell bookkeeping).
+            def offset(j):
+                j = mi.Int32(j)
+                return mi.Vector3i(toward.x * (j & 1), toward.y * ((j >> 1) & 1), toward.z * (j >> 2))
+        else:
+            offset = _neighbour_offset
+
+        def cell(j):
+            visited = center + offset(j)
+            return hash_cell(visited, mask), cell_key(visited)
+
         if self.order is None:
             index_of = lambda entry, valid: entry  # noqa: E731
         else:
             index_of = lambda entry, valid: dr.gather(mi.UInt32, self.order, entry, valid)  # noqa: E731
-        for j, offset in enumerate(offsets):
-            visited = center + offset
-            state = _scan_cell(self.cell_start, self.keys, self.positions, index_of,
-                               hash_cell(visited, mask), cell_key(visited), query, radius2,
-                               state, visit, active, finished, with_offset, f"{label}_cell{j}")
-        return state
+        return _scan_cells(self.cell_start, self.keys, self.positions, index_of, cell,
+                           8 if octant else 27, query, radius2, state, visit, active, finished,
+                           with_offset, label)
 
 
 @dataclass
@@ -430,11 +460,11 @@ class PointGridPyramid:
         center = cell_of(query, self.origin, inv)
         mask = dr.opaque(mi.UInt32, self.table_mask)
         level_bits = level << 30
-        for j in range(27):
-            visited = center + mi.Vector3i((j % 3) - 1, ((j // 3) % 3) - 1, (j // 9) - 1)
-            state = _scan_cell(self.cell_start, self.keys, self.positions,
-                               lambda entry, valid: dr.gather(mi.UInt32, self.index, entry, valid),
-                               self._bucket(visited, level, mask), cell_key(visited) | level_bits,
-                               query, radius2, state, visit, active, None, with_offset,
-                               f"{label}_cell{j}")
-        return state
+
+        def cell(j):
+            visited = center + _neighbour_offset(j)
+            return self._bucket(visited, level, mask), cell_key(visited) | level_bits
+
+        return _scan_cells(self.cell_start, self.keys, self.positions,
+                           lambda entry, valid: dr.gather(mi.UInt32, self.index, entry, valid),
+                           cell, 27, query, radius2, state, visit, active, None, with_offset, label)

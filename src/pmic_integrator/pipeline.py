@@ -383,6 +383,12 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
     progress.update("cache", 0.05, "placing records at the photons")
     index, rounds = builder.build_records(photons.position, photons.normal, None)
     stats["placement_rounds"] = rounds
+    if not settings.final_gather_camera:
+        progress.update("cache", 0.5, f"{index.records.count} records: surface probes")
+        before = index.records.count
+        index = builder.complete_with_probes(index)
+        stats["records_probes"] = index.records.count - before
+    index = builder.index(index.records, lookup=True)
     if settings.final_gather_camera:
         # What a gather hit reflects is all of its light: records keep their direct
         # irradiance too, so the camera path needs no shadow rays there. Gather hits
@@ -392,11 +398,6 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
             scene, index.records.position, index.records.normal, cache_mod.RECORD_DIRECT_SAMPLES,
             settings.seed, prepared.ray_offset)
         dr.eval(index.direct)
-    else:
-        progress.update("cache", 0.5, f"{index.records.count} records: surface probes")
-        before = index.records.count
-        index = builder.complete_with_probes(index)
-        stats["records_probes"] = index.records.count - before
     stats["records"] = index.records.count
     progress.done("cache", f"{index.records.count} records")
     return index, stats
@@ -412,11 +413,12 @@ class CacheBuilder:
         self.prepared = prepared
         self.offset = prepared.ray_offset
 
-    def index(self, records: CacheRecords) -> RecordIndex:
-        """The lookup structure of ``records``, with visibility tests for records that
-        reach past a surface."""
+    def index(self, records: CacheRecords, lookup: bool = False) -> RecordIndex:
+        """The index of ``records``, with visibility tests for records that reach past
+        a surface: for coverage tests while building, or with ``lookup`` for
+        rendering (:meth:`RecordIndex.build`)."""
         return RecordIndex.build(records, self.settings.max_error, self.scene,
-                                 VISIBILITY_LIFT * self.prepared.global_radius)
+                                 VISIBILITY_LIFT * self.prepared.global_radius, lookup=lookup)
 
     def radius_bounds(self):
         prepared = self.prepared
@@ -644,7 +646,9 @@ def camera_seeded_index(scene: mi.Scene, sensor: mi.Sensor, settings: Settings,
     """The classic Ward cache of one view: records placed at what ``sensor`` sees.
     Returns ``(index, rounds)``; ``prepared`` is not changed."""
     cam_p, cam_n = camera_points(scene, sensor, settings.seed)
-    return CacheBuilder(scene, settings, prepared).build_records(cam_p, cam_n, None)
+    builder = CacheBuilder(scene, settings, prepared)
+    index, rounds = builder.build_records(cam_p, cam_n, None)
+    return builder.index(index.records, lookup=True), rounds
 
 
 @dr.syntax
