@@ -162,8 +162,11 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
         n = mi.Vector3f(si.n)
         n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
         diffuse = active & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
-        irradiance = source.irradiance_at(scene, si, n, diffuse)
-        reflected = throughput * diffuse_response(bsdf, si, diffuse) * irradiance
+        response = diffuse_response(bsdf, si, diffuse)
+        # No lookup where nothing is reflected (the back of a one-sided surface, a
+        # black texel): the searches there are the slowest (no photon is near).
+        irradiance = source.irradiance_at(scene, si, n, diffuse & (dr.max(response) > 0))
+        reflected = throughput * response * irradiance
         radiance += dr.select(diffuse & dr.all(dr.isfinite(reflected)), reflected, 0.0)
         rest = active & (mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy))
         rest &= bounce < GATHER_SPECULAR_BOUNCES
