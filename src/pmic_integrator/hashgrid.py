@@ -138,6 +138,50 @@ def _scan_cells(cell_start, keys, positions, index_of, cell, cells: int, query, 
     return state
 
 
+def _scan_cell(cell_start, keys, positions, index_of, bucket, visited_key, query, radius2,
+               state, visit, active, finished, with_offset, label):
+    """:func:`_scan_cells` for one cell (``bucket`` and ``visited_key`` given): a loop
+    of its own, whose body holds only the per-candidate work."""
+    entry = dr.gather(mi.UInt32, cell_start, bucket, active)
+    end = dr.gather(mi.UInt32, cell_start, bucket + 1, active)
+
+    def cond(entry, end, state):
+        running = active & (entry < end)
+        if finished is not None:
+            running &= ~finished(state)
+        return running
+
+    def body(entry, end, state):
+        same_cell = dr.gather(mi.UInt32, keys, entry) == visited_key
+        p = dr.gather(mi.Point3f, positions, entry, same_cell)
+        d = p - query
+        dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
+        valid = same_cell & (dist2 < radius2)
+        index = index_of(entry, valid)
+        state = visit(state, index, dist2, valid, d) if with_offset else \
+            visit(state, index, dist2, valid)
+        return entry + 1, end, state
+
+    return dr.while_loop(state=(entry, end, state), cond=cond, body=body, label=label)[-1]
+
+
+def _walk(cell_start, keys, positions, index_of, cell, cells: int, query, radius2, state,
+          visit, active, finished, with_offset, label, one_loop: bool):
+    """Visit the ``cells`` cells: in one loop (:func:`_scan_cells`), or with a loop per
+    cell unrolled here. The same entries in the same order either way; one loop is
+    traced once and lets each lane move on by itself (cheap to build, best for small
+    batches and lookups that stop early), a loop per cell carries no bookkeeping per
+    candidate (best for dense sums: density estimates over hundreds of photons)."""
+    if one_loop:
+        return _scan_cells(cell_start, keys, positions, index_of, cell, cells, query, radius2,
+                           state, visit, active, finished, with_offset, label)
+    for j in range(cells):
+        bucket, key = cell(mi.UInt32(j))
+        state = _scan_cell(cell_start, keys, positions, index_of, bucket, key, query, radius2,
+                           state, visit, active, finished, with_offset, f"{label}_cell{j}")
+    return state
+
+
 def _neighbour_offset(j: mi.UInt32) -> mi.Vector3i:
     """The j-th of the 3×3×3 cells around a cell (x fastest), as an offset."""
     j = mi.Int32(j)
@@ -200,7 +244,7 @@ class PointGrid:
                           visit: Callable[[Any, mi.UInt32, mi.Float, mi.Bool], Any],
                           active=True, finished: Callable[[Any], mi.Bool] | None = None,
                           label: str = "point_grid_query", with_offset: bool = False,
-                          octant: bool = False):
+                          octant: bool = False, one_loop: bool = True):
         """Call ``visit(state, index, dist2, valid)`` for every point within ``radius``.
 
         ``index`` is the point's original index, ``dist2`` its squared distance to
@@ -211,7 +255,8 @@ class PointGrid:
         ``with_offset``, ``visit`` also receives ``point - query`` (already at hand, so
         the visitor need not gather the position again). With ``octant`` the radius
         must not exceed half a cell, and only the 2×2×2 cells nearest the query are
-        visited (instead of 3×3×3).
+        visited (instead of 3×3×3). ``one_loop``: how the cells are walked (see
+        :func:`_walk`; the result is the same).
         """
         query = mi.Point3f(query)
         n_lanes = dr.width(query.x)
@@ -244,9 +289,9 @@ class PointGrid:
             index_of = lambda entry, valid: entry  # noqa: E731
         else:
             index_of = lambda entry, valid: dr.gather(mi.UInt32, self.order, entry, valid)  # noqa: E731
-        return _scan_cells(self.cell_start, self.keys, self.positions, index_of, cell,
-                           8 if octant else 27, query, radius2, state, visit, active, finished,
-                           with_offset, label)
+        return _walk(self.cell_start, self.keys, self.positions, index_of, cell,
+                     8 if octant else 27, query, radius2, state, visit, active, finished,
+                     with_offset, label, one_loop)
 
 
 @dataclass
@@ -445,7 +490,7 @@ class PointGridPyramid:
         return level, dr.opaque(mi.Float, self.radius) * dr.exp2(-mi.Float(level))
 
     def for_each_neighbor(self, query: mi.Point3f, level: mi.UInt32, state, visit, active=True,
-                          label="pyramid_query", with_offset: bool = False):
+                          label="pyramid_query", with_offset: bool = False, one_loop: bool = True):
         """Call ``visit(state, index, dist2, valid[, offset])`` for every point within the
         radius of each query's ``level`` (from :meth:`level_of`); as
         :meth:`PointGrid.for_each_neighbor`."""
@@ -465,6 +510,7 @@ class PointGridPyramid:
             visited = center + _neighbour_offset(j)
             return self._bucket(visited, level, mask), cell_key(visited) | level_bits
 
-        return _scan_cells(self.cell_start, self.keys, self.positions,
-                           lambda entry, valid: dr.gather(mi.UInt32, self.index, entry, valid),
-                           cell, 27, query, radius2, state, visit, active, None, with_offset, label)
+        return _walk(self.cell_start, self.keys, self.positions,
+                     lambda entry, valid: dr.gather(mi.UInt32, self.index, entry, valid),
+                     cell, 27, query, radius2, state, visit, active, None, with_offset, label,
+                     one_loop)

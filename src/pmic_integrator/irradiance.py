@@ -187,11 +187,11 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
     if pyramid:
         total, moment, weight, weight2 = grid.for_each_neighbor(
             query_p, level, zero, visit, active=active, label="photon_density_estimate",
-            with_offset=True)
+            with_offset=True, one_loop=False)
     else:
         total, moment, weight, weight2 = grid.for_each_neighbor(
             query_p, radius, zero, visit, active=active, label="photon_density_estimate",
-            with_offset=True)
+            with_offset=True, one_loop=False)
     estimate = total * (3.0 * dr.inv_pi) * inv_r2
     if boundary:
         # Where the disc runs past the surface's edge (walls meeting, a table's rim),
