@@ -9,7 +9,9 @@ A Cornell box with ``--views`` sensors on a circle, 256² at 16 spp each:
   * ``pmic, one process per view``: what a farm without cache files runs (each process
     loads the scene and builds its own cache);
   * ``pmic on Dask``: ``views.render_views`` on a LocalCluster (``--workers``), the cache
-    built once and shipped as bytes (its time includes starting the cluster).
+    built once and shipped as bytes (its time includes starting the cluster): worker
+    processes (as on a real cluster), and worker threads of one process
+    (``processes=False``: one scene, one loaded cache and one set of compiled kernels).
 Every configuration renders once untimed first (kernel compilation). Writes
 ``benchmarks/results/views.json`` and ``.md``.
 
@@ -97,6 +99,9 @@ def main(argv=None):
         print(f"{name:34s} {seconds:7.2f} s  {args.views / seconds:.2f} views/s", flush=True)
     _, dask_seconds = timed(lambda: render_views(path, list(views), args.spp, n_workers=args.workers,
                                                  progress=False))
+    _, dask_thread_seconds = timed(lambda: render_views(path, list(views), args.spp,
+                                                        n_workers=args.workers, processes=False,
+                                                        progress=False))
     # A farm without cache files: one process per view, each loading the scene and
     # building its own cache (kernels come from Dr.Jit's on-disk cache, as on a farm).
     one_view = ("import pmic_integrator, mitsuba as mi, numpy as np, sys; mi.set_variant('llvm_ad_rgb'); "
@@ -109,27 +114,39 @@ def main(argv=None):
     rows["pmic, one process per view (cache rebuilt)"] = {"seconds": seconds,
                                                           "views_per_second": args.views / seconds}
     print(f"pmic, one process per view: {seconds:7.2f} s", flush=True)
-    dask_name = f"pmic on Dask ({args.workers} worker{'s' if args.workers > 1 else ''})"
+    plural = "s" if args.workers > 1 else ""
+    dask_name = f"pmic on Dask ({args.workers} worker process{'es' if plural else ''})"
+    thread_name = f"pmic on Dask ({args.workers} worker thread{plural}, one process)"
     rows[dask_name] = {"seconds": dask_seconds, "views_per_second": args.views / dask_seconds}
-    print(f"pmic on Dask: {dask_seconds:7.2f} s  {args.views / dask_seconds:.2f} views/s "
-          f"(includes cluster start-up)")
-    speedup = rows["pmic, rebuilt per view"]["seconds"] / dask_seconds
-    speedup_processes = rows["pmic, one process per view (cache rebuilt)"]["seconds"] / dask_seconds
-    print(f"Dask from one cache against independent renders: {speedup:.2f}x (in one process), "
-          f"{speedup_processes:.2f}x (one process each)")
+    rows[thread_name] = {"seconds": dask_thread_seconds,
+                         "views_per_second": args.views / dask_thread_seconds}
+    for name in (dask_name, thread_name):
+        print(f"{name}: {rows[name]['seconds']:7.2f} s  {rows[name]['views_per_second']:.2f} views/s "
+              f"(includes cluster start-up)")
+    rebuilt = rows["pmic, rebuilt per view"]["seconds"]
+    processes = rows["pmic, one process per view (cache rebuilt)"]["seconds"]
+    speedup, speedup_processes = rebuilt / dask_seconds, processes / dask_seconds
+    thread_speedup, thread_speedup_processes = rebuilt / dask_thread_seconds, processes / dask_thread_seconds
+    print(f"Dask from one cache against independent renders: processes {speedup:.2f}x (against "
+          f"rebuilds in one process), {speedup_processes:.2f}x (one process each); threads "
+          f"{thread_speedup:.2f}x, {thread_speedup_processes:.2f}x")
 
     args.out.mkdir(parents=True, exist_ok=True)
     command = "python benchmarks/views.py " + " ".join(sys.argv[1:] if argv is None else argv)
     (args.out / "views.json").write_text(json.dumps({"command": command, "views": args.views,
                                                      "resolution": args.resolution, "spp": args.spp,
                                                      "rows": rows, "dask_speedup_over_rebuilt": speedup,
-                                                     "dask_speedup_over_processes": speedup_processes}, indent=2))
+                                                     "dask_speedup_over_processes": speedup_processes,
+                                                     "dask_threads_speedup_over_rebuilt": thread_speedup,
+                                                     "dask_threads_speedup_over_processes": thread_speedup_processes},
+                                                    indent=2))
     md = [f"# {args.views} views of the Cornell box, {args.resolution}², {args.spp} spp", "",
           f"`{command}`", "", "| configuration | time [s] | views/s |", "|---|---|---|"]
     md += [f"| {k} | {v['seconds']:.2f} | {v['views_per_second']:.2f} |" for k, v in rows.items()]
-    md += ["", f"{dask_name}, one cache, against {args.views} independent renders (each "
-               f"building its own cache): {speedup:.2f}x sooner than in one warm process, "
-               f"{speedup_processes:.2f}x sooner than one process per view."]
+    md += ["", f"One cache on Dask against {args.views} independent renders (each building "
+               f"its own cache): {dask_name}: {speedup:.2f}x sooner than the rebuilds in one warm "
+               f"process, {speedup_processes:.2f}x sooner than one process per view; "
+               f"{thread_name}: {thread_speedup:.2f}x and {thread_speedup_processes:.2f}x."]
     (args.out / "views.md").write_text("\n".join(md) + "\n")
     print("wrote", args.out / "views.md")
 

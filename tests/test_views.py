@@ -44,6 +44,22 @@ def test_views_on_a_local_cluster_equal_local_renders(tmp_path):
     assert not np.array_equal(images[0], images[2])
 
 
+def test_worker_threads_render_what_worker_processes_render(tmp_path):
+    """``processes=False``: two worker threads of this process share one scene and one
+    loaded cache; the images are those of the local renders (as above)."""
+    scene_file = tmp_path / "room.xml"
+    scene_file.write_text(SCENE.format(sensors="".join(SENSOR.format(x=x) for x in (-0.5, 0.5))))
+    cache = tmp_path / "cache.npz"
+    images = render_views(scene_file, spp=2, seed=1, integrator=SETTINGS, cache_file=cache,
+                          n_workers=2, processes=False, progress=False)
+    scene = mi.load_file(str(scene_file))
+    pmic = mi.load_dict({"type": "pmic", **SETTINGS, "cache_file": str(cache)})
+    assert pmic.build_cache(scene)["photons_global"] > 0
+    for sensor in (0, 1):
+        local = np.array(mi.render(scene, integrator=pmic, sensor=sensor, spp=2, seed=1))
+        assert np.array_equal(images[sensor], local), sensor
+
+
 def test_bad_spp_is_refused(tmp_path):
     with pytest.raises(ValueError, match="'spp'"):
         render_views(tmp_path / "none.xml", spp=0)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -50,6 +51,8 @@ def build_cache_file(scene_file, cache_file, integrator: dict | None = None, var
 #: (scene file, cache, settings, variant), so that a worker's later views skip loading
 #: the scene, reading the cache and compiling the scene's kernels again.
 _WORKER_CACHE: dict = {}
+#: Worker threads of one process (``processes=False``) share it.
+_WORKER_LOCK = threading.Lock()
 
 
 def _worker_scene(scene_file: str, cache_bytes: bytes, integrator: dict, variant: str,
@@ -58,14 +61,15 @@ def _worker_scene(scene_file: str, cache_bytes: bytes, integrator: dict, variant
 
     key = (scene_file, hashlib.blake2b(cache_bytes, digest_size=16).hexdigest(),
            repr(sorted(integrator.items())), variant, repr(sorted(load_args.items())))
-    if key not in _WORKER_CACHE:
-        _WORKER_CACHE.clear()
-        folder = tempfile.mkdtemp(prefix="pmic-view-")
-        path = os.path.join(folder, "cache.npz")
-        Path(path).write_bytes(cache_bytes)
-        _WORKER_CACHE[key] = _scene(scene_file, {**integrator, "type": "pmic", "cache_file": path},
-                                    load_args)
-    return _WORKER_CACHE[key]
+    with _WORKER_LOCK:
+        if key not in _WORKER_CACHE:
+            _WORKER_CACHE.clear()
+            folder = tempfile.mkdtemp(prefix="pmic-view-")
+            path = os.path.join(folder, "cache.npz")
+            Path(path).write_bytes(cache_bytes)
+            _WORKER_CACHE[key] = _scene(scene_file, {**integrator, "type": "pmic", "cache_file": path},
+                                        load_args)
+        return _WORKER_CACHE[key]
 
 
 def _warm_up(scene_file: str, variant: str, load_args: dict, _index: int) -> bool:
@@ -112,16 +116,21 @@ def render_one(scene_file: str, cache_bytes: bytes, sensor: int, spp: int, seed:
 
 def render_views(scene_file, sensors=None, spp: int = 16, seed: int = 0, integrator=None,
                  cache_file=None, scheduler=None, client=None, n_workers: int = 1,
-                 threads_per_worker: int = 1, variant: str = "llvm_ad_rgb",
-                 progress: bool = True, **load_args) -> dict:
+                 threads_per_worker: int = 1, processes: bool = True,
+                 variant: str = "llvm_ad_rgb", progress: bool = True, **load_args) -> dict:
     """Render ``sensors`` (indices; default all) of ``scene_file`` from one cache on Dask.
 
     The cache is built here once (or read from an existing ``cache_file``) and sent to
     the workers as bytes. ``client``: an existing ``dask.distributed.Client``;
     ``scheduler``: a scheduler address to connect to; neither: a ``LocalCluster`` of
     ``n_workers`` processes with ``threads_per_worker`` task threads each (1: a view
-    already uses every core through Dr.Jit's own thread pool). Returns ``{sensor: image}`` (H x W x C float32 arrays);
-    the same sensor gives the same image whatever else is rendered, in whatever order.
+    already uses every core through Dr.Jit's own thread pool), or with
+    ``processes=False`` of ``n_workers`` threads in this process, which share one
+    scene, one loaded cache and the kernels already compiled here (on one machine the
+    faster choice: each process must trace and compile its kernels once, and the
+    cores are split between them). Returns ``{sensor: image}`` (H x W x C float32
+    arrays); the same sensor gives the same image whatever else is rendered, in
+    whatever order, and whichever kind of cluster renders it.
     """
     try:
         from dask.distributed import Client, LocalCluster, as_completed
@@ -138,10 +147,12 @@ def render_views(scene_file, sensors=None, spp: int = 16, seed: int = 0, integra
         else:
             # Each worker's Dr.Jit gets its share of this machine's cores: two workers
             # with a full thread pool each would fight over them.
+            # (Worker threads share this process's pool: views then run one at a
+            # time, each on every core.)
             jit_threads = max(1, (os.cpu_count() or 1) // max(1, n_workers))
+            split = {"env": {"PMIC_JIT_THREADS": str(jit_threads)}} if processes else {}
             own_cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker,
-                                       processes=True, dashboard_address=None,
-                                       env={"PMIC_JIT_THREADS": str(jit_threads)})
+                                       processes=bool(processes), dashboard_address=None, **split)
             client = Client(own_cluster)
     try:
         # Workers start Mitsuba and read the scene while the cache is built here.
