@@ -67,6 +67,9 @@ def _worker_scene(scene_file: str, cache_bytes: bytes, integrator: dict, variant
             folder = tempfile.mkdtemp(prefix="pmic-view-")
             path = os.path.join(folder, "cache.npz")
             Path(path).write_bytes(cache_bytes)
+            # Worker threads of one process share the scene and the integrator: its
+            # renders take turns, each on the whole Dr.Jit pool. (Two integrators
+            # rendering one scene at once hung, spinning, in Mitsuba 3.9.)
             _WORKER_CACHE[key] = _scene(scene_file, {**integrator, "type": "pmic", "cache_file": path},
                                         load_args)
         return _WORKER_CACHE[key]
@@ -156,9 +159,11 @@ def render_views(scene_file, sensors=None, spp: int = 16, seed: int = 0, integra
             client = Client(own_cluster)
     try:
         # Workers start Mitsuba and read the scene while the cache is built here.
+        # (Worker threads of this process have nothing to start.)
         workers = max(1, len(client.scheduler_info().get("workers", {})))
-        warm = [client.submit(_warm_up, str(scene_file), variant, load_args, i, pure=False)
-                for i in range(workers)]
+        warm = [] if own_cluster is not None and not processes else \
+            [client.submit(_warm_up, str(scene_file), variant, load_args, i, pure=False)
+             for i in range(workers)]
         with tempfile.TemporaryDirectory() as folder:
             path = Path(cache_file) if cache_file else Path(folder) / "cache.npz"
             if not path.exists():
