@@ -12,6 +12,7 @@ must be readable there); the cache travels as bytes with the task. Needs the ext
 """
 from __future__ import annotations
 
+import atexit
 import os
 import tempfile
 import threading
@@ -63,16 +64,31 @@ def _worker_scene(scene_file: str, cache_bytes: bytes, integrator: dict, variant
            repr(sorted(integrator.items())), variant, repr(sorted(load_args.items())))
     with _WORKER_LOCK:
         if key not in _WORKER_CACHE:
-            _WORKER_CACHE.clear()
+            _forget_worker_scene()
             folder = tempfile.mkdtemp(prefix="pmic-view-")
             path = os.path.join(folder, "cache.npz")
             Path(path).write_bytes(cache_bytes)
             # Worker threads of one process share the scene and the integrator: its
-            # renders take turns, each on the whole Dr.Jit pool. (Two integrators
-            # rendering one scene at once hung, spinning, in Mitsuba 3.9.)
+            # renders take turns, each on the whole Dr.Jit pool. (An integrator per
+            # thread, rendering one scene at once, hung once under Dask; the cause
+            # was not found.)
             _WORKER_CACHE[key] = _scene(scene_file, {**integrator, "type": "pmic", "cache_file": path},
                                         load_args)
+            _WORKER_CACHE["folder"] = folder
         return _WORKER_CACHE[key]
+
+
+def _forget_worker_scene():
+    """Drop the kept scene and integrator, and the folder of their cache file."""
+    import shutil
+
+    folder = _WORKER_CACHE.get("folder")
+    _WORKER_CACHE.clear()
+    if folder:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+atexit.register(_forget_worker_scene)
 
 
 def _warm_up(scene_file: str, variant: str, load_args: dict, _index: int) -> bool:
