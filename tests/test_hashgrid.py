@@ -162,3 +162,35 @@ def test_pyramid_finds_exactly_the_points_within_each_querys_own_radius():
     idx = np.arange(len(points), dtype=np.uint64)
     np.testing.assert_array_equal(np.array(count)[ok], inside.sum(1)[ok])
     np.testing.assert_array_equal(np.array(s1)[ok], ((inside * idx).sum(1) % 2**32)[ok])
+
+
+@pytest.mark.parametrize("octant", [False, True])
+def test_one_loop_and_a_loop_per_cell_visit_in_the_same_order(octant):
+    """The two ways of walking the cells must give bit-identical float sums (the order
+    of visits decides them) and the same early stops."""
+    rng = np.random.default_rng(5)
+    points = rng.random((3000, 3)).astype(np.float32)
+    queries = mi.Point3f(rng.random((500, 3)).astype(np.float32).T)
+    weights = mi.Float(rng.random(3000).astype(np.float32))
+    grid = PointGrid.build(mi.Point3f(points.T), 0.2 if octant else 0.1)
+
+    def visit(state, index, dist2, valid):
+        total, seen = state
+        w = dr.gather(mi.Float, weights, index, valid)
+        # Order-sensitive: a running sum of products, rounded at every step.
+        return dr.select(valid, total * 0.75 + w * dist2, total), seen + dr.select(valid, 1, 0)
+
+    def stop(state):
+        return state[1] >= 5
+
+    out = {}
+    for one_loop in (True, False):
+        for finished in (None, stop):
+            init = (dr.zeros(mi.Float, 500), dr.zeros(mi.UInt32, 500))
+            total, seen = grid.for_each_neighbor(queries, 0.1, init, visit, finished=finished,
+                                                 octant=octant, one_loop=one_loop)
+            out[one_loop, finished is None] = (np.array(total), np.array(seen))
+    for full in (True, False):
+        np.testing.assert_array_equal(out[True, full][0], out[False, full][0])
+        np.testing.assert_array_equal(out[True, full][1], out[False, full][1])
+    assert out[True, True][1].max() > 5 and out[True, False][1].max() == 5
