@@ -86,6 +86,21 @@ def _bucket_sort(bucket: mi.UInt32, table_size: int):
     return cell_start, order
 
 
+def _visit_entry(keys, positions, index_of, entry, present, key, query, radius2, state, visit,
+                 with_offset):
+    """``visit`` one grid entry (where ``present``): it counts if it belongs to the
+    visited cell (``keys`` equal to ``key``) and lies within the squared radius."""
+    same_cell = dr.gather(mi.UInt32, keys, entry, present) == key
+    if present is not True:
+        same_cell &= present
+    p = dr.gather(mi.Point3f, positions, entry, same_cell)
+    d = p - query
+    dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
+    valid = same_cell & (dist2 < radius2)
+    index = index_of(entry, valid)
+    return visit(state, index, dist2, valid, d) if with_offset else visit(state, index, dist2, valid)
+
+
 def _scan_cells(cell_start, keys, positions, index_of, cell, cells: int, query, radius2,
                 state, visit, active, finished, with_offset, label):
     """Call ``visit`` for the entries within the squared radius of ``cells`` grid
@@ -116,14 +131,8 @@ def _scan_cells(cell_start, keys, positions, index_of, cell, cells: int, query, 
 
     def body(following, entry, end, key, state):
         in_cell = entry < end
-        same_cell = in_cell & (dr.gather(mi.UInt32, keys, entry, in_cell) == key)
-        p = dr.gather(mi.Point3f, positions, entry, same_cell)
-        d = p - query
-        dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
-        valid = same_cell & (dist2 < radius2)
-        index = index_of(entry, valid)
-        state = visit(state, index, dist2, valid, d) if with_offset else \
-            visit(state, index, dist2, valid)
+        state = _visit_entry(keys, positions, index_of, entry, in_cell, key, query, radius2,
+                             state, visit, with_offset)
         entry = dr.select(in_cell, entry + 1, entry)
         move_on = (entry >= end) & (following < limit)
         next_entry, next_end, next_key = load(following, move_on)
@@ -152,15 +161,8 @@ def _scan_cell(cell_start, keys, positions, index_of, bucket, visited_key, query
         return running
 
     def body(entry, end, state):
-        same_cell = dr.gather(mi.UInt32, keys, entry) == visited_key
-        p = dr.gather(mi.Point3f, positions, entry, same_cell)
-        d = p - query
-        dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
-        valid = same_cell & (dist2 < radius2)
-        index = index_of(entry, valid)
-        state = visit(state, index, dist2, valid, d) if with_offset else \
-            visit(state, index, dist2, valid)
-        return entry + 1, end, state
+        return entry + 1, end, _visit_entry(keys, positions, index_of, entry, True, visited_key,
+                                            query, radius2, state, visit, with_offset)
 
     return dr.while_loop(state=(entry, end, state), cond=cond, body=body, label=label)[-1]
 
