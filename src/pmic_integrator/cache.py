@@ -507,8 +507,8 @@ class RecordIndex:
     @staticmethod
     def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0,
               lookup: bool = True) -> "RecordIndex":
-        """The index of ``records``. With ``lookup`` (for rendering: interpolation and
-        :meth:`near`), grids of small cells and the backup grid; without, one grid of
+        """The index of ``records``. With ``lookup`` (for rendering: interpolation),
+        grids of small cells and the backup grid; without, one grid of
         the default cells, which answers :meth:`covered` alike at a tenth of the cost
         (coverage is a yes/no test, whatever the cells; the interpolated sums follow
         the cells' order, so every rendered index is built with ``lookup``)."""
@@ -542,14 +542,6 @@ class RecordIndex:
         r = self.records
         return _covered_by(r.position, r.normal, r.radius, self.grid, x, n, self.max_error, active,
                            visibility=self._visibility())
-
-    def near(self, x, n, active=True) -> mi.Bool:
-        """Is (x, n) within BACKUP_REACH × a·R of some record that sees it? Where it
-        is, interpolation finds records (see :meth:`interpolate`)."""
-        self._require_lookup()
-        r = self.records
-        return _covered_by(r.position, r.normal, r.radius, self.backup_grid, x, n,
-                           self.max_error * BACKUP_REACH, active, visibility=self._visibility())
 
     def _weighted_sum(self, grid: BallGrid, max_error: float, x, n, active, label):
         r = self.records

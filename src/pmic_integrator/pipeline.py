@@ -82,7 +82,7 @@ PLACEMENT_SUBSET = 16384
 #: cache's camera points at 512².
 MAX_PLACEMENT_PHOTONS = 1 << 18
 #: Ray origins are pushed off the surface by this fraction of the scene's length scale
-#: (see ``CacheBuilder.length_scale``), plus RAY_OFFSET_RELATIVE of the point's largest
+#: (see ``PreparedScene.length_scale``), plus RAY_OFFSET_RELATIVE of the point's largest
 #: coordinate (float precision far from the origin).
 RAY_OFFSET_DIAGONAL = 1e-5
 #: The length scale is the diagonal, but at most this many global lookup radii: a
@@ -395,7 +395,7 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
         before = index.records.count
         index = builder.complete_with_probes(index)
         stats["records_probes"] = index.records.count - before
-    index = builder.index(index.records, lookup=True)
+    index = index.for_lookup()
     if settings.final_gather_camera:
         # What a gather hit reflects is all of its light: records keep their direct
         # irradiance too, so the camera path needs no shadow rays there. Gather hits
@@ -420,12 +420,12 @@ class CacheBuilder:
         self.prepared = prepared
         self.offset = prepared.ray_offset
 
-    def index(self, records: CacheRecords, lookup: bool = False) -> RecordIndex:
-        """The index of ``records``, with visibility tests for records that reach past
-        a surface: for coverage tests while building, or with ``lookup`` for
-        rendering (:meth:`RecordIndex.build`)."""
+    def index(self, records: CacheRecords) -> RecordIndex:
+        """The coverage index of ``records`` used while building (its
+        :meth:`~RecordIndex.for_lookup` is what renders read), with visibility tests
+        for records that reach past a surface."""
         return RecordIndex.build(records, self.settings.max_error, self.scene,
-                                 VISIBILITY_LIFT * self.prepared.global_radius, lookup=lookup)
+                                 VISIBILITY_LIFT * self.prepared.global_radius, lookup=False)
 
     def radius_bounds(self):
         prepared = self.prepared
@@ -480,9 +480,9 @@ class CacheBuilder:
         photon count.
         """
         count = dr.width(cand_p.x)
-        placed = CacheRecords.empty() if existing is None else existing.records
         rounds = 0
         remaining_p, remaining_n = cand_p, cand_n
+        prior = existing  # the records placed so far, as an index (None: none)
         new_p, new_n, new_r = [], [], []
         if count > PLACEMENT_SUBSET:
             subset = every_nth(count, -(-count // PLACEMENT_SUBSET))
@@ -490,12 +490,12 @@ class CacheBuilder:
                                        dr.gather(mi.Vector3f, cand_n, subset), existing)
             rounds += k
             new_p.append(p), new_n.append(n), new_r.append(r)
-            placed = placed.extend(CacheRecords.geometry_only(p, n, r))
-            uncovered = dr.compress(~self.index(placed).covered(cand_p, cand_n))
+            placed = CacheRecords.geometry_only(p, n, r)
+            prior = self.index(placed if existing is None else existing.records.extend(placed))
+            uncovered = dr.compress(~prior.covered(cand_p, cand_n))
             remaining_p = dr.gather(mi.Point3f, cand_p, uncovered)
             remaining_n = dr.gather(mi.Vector3f, cand_n, uncovered)
         if dr.width(remaining_p.x):
-            prior = self.index(placed) if placed.count else None
             (p, n, r), k = self._place(remaining_p, remaining_n, prior)
             rounds += k
             new_p.append(p), new_n.append(n), new_r.append(r)
@@ -664,9 +664,8 @@ def camera_seeded_index(scene: mi.Scene, sensor: mi.Sensor, settings: Settings,
     """The classic Ward cache of one view: records placed at what ``sensor`` sees.
     Returns ``(index, rounds)``; ``prepared`` is not changed."""
     cam_p, cam_n = camera_points(scene, sensor, settings.seed)
-    builder = CacheBuilder(scene, settings, prepared)
-    index, rounds = builder.build_records(cam_p, cam_n, None)
-    return builder.index(index.records, lookup=True), rounds
+    index, rounds = CacheBuilder(scene, settings, prepared).build_records(cam_p, cam_n, None)
+    return index.for_lookup(), rounds
 
 
 @dr.syntax
