@@ -48,9 +48,10 @@ def build_cache_file(scene_file, cache_file, integrator: dict | None = None, var
     return stats
 
 
-#: Per worker process: the scene and the integrator (with its loaded cache) of the last
-#: (scene file, cache, settings, variant), so that a worker's later views skip loading
-#: the scene, reading the cache and compiling the scene's kernels again.
+#: Per worker process: ``key`` (scene file, cache, settings, variant, load arguments) of
+#: the last views, their ``scene`` and ``integrator`` (with its loaded cache) and the
+#: ``folder`` of the cache file, so that a worker's later views skip loading the scene,
+#: reading the cache and compiling the scene's kernels again.
 _WORKER_CACHE: dict = {}
 #: Worker threads of one process (``processes=False``) share it.
 _WORKER_LOCK = threading.Lock()
@@ -63,7 +64,7 @@ def _worker_scene(scene_file: str, cache_bytes: bytes, integrator: dict, variant
     key = (scene_file, hashlib.blake2b(cache_bytes, digest_size=16).hexdigest(),
            repr(sorted(integrator.items())), variant, repr(sorted(load_args.items())))
     with _WORKER_LOCK:
-        if key not in _WORKER_CACHE:
+        if _WORKER_CACHE.get("key") != key:
             _forget_worker_scene()
             folder = tempfile.mkdtemp(prefix="pmic-view-")
             path = os.path.join(folder, "cache.npz")
@@ -72,10 +73,10 @@ def _worker_scene(scene_file: str, cache_bytes: bytes, integrator: dict, variant
             # renders take turns, each on the whole Dr.Jit pool. (An integrator per
             # thread, rendering one scene at once, hung once under Dask; the cause
             # was not found.)
-            _WORKER_CACHE[key] = _scene(scene_file, {**integrator, "type": "pmic", "cache_file": path},
-                                        load_args)
-            _WORKER_CACHE["folder"] = folder
-        return _WORKER_CACHE[key]
+            scene, pmic = _scene(scene_file, {**integrator, "type": "pmic", "cache_file": path},
+                                 load_args)
+            _WORKER_CACHE.update(key=key, scene=scene, integrator=pmic, folder=folder)
+        return _WORKER_CACHE["scene"], _WORKER_CACHE["integrator"]
 
 
 def _forget_worker_scene():
