@@ -141,3 +141,17 @@ def test_photon_seeds_keep_maps_and_batches_apart():
     seeds = {streams.photon_batch_seed(seed, batch, caustic)
              for seed in range(3) for batch in range(100) for caustic in (False, True)}
     assert len(seeds) == 600
+
+
+def test_progress_writes_one_line_per_stage_to_a_log():
+    """In a log (not a terminal) each stage gets one line: the photon tracer reporting
+    its last batch at 100 % and the stage's end wrote two."""
+    import io
+
+    log = io.StringIO()
+    progress = pipeline.Progress(enabled=True, stream=log)
+    progress.photons("global", 500, 1000, 800)
+    progress.photons("global", 1000, 1000, 1600)
+    progress.done("photons (global)", "1000 stored")
+    lines = [line for line in log.getvalue().replace("\r", "\n").split("\n") if line.strip()]
+    assert len(lines) == 1 and "100%" in lines[0] and "1000 stored" in lines[0], lines

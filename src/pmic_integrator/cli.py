@@ -129,10 +129,11 @@ def main(argv=None) -> int:
     stats = pmic.stats
     stage_names = ("time_photons", "time_precompute", "time_cache", "time_cache_view", "time_render")
     stages = ", ".join(f"{k[5:]} {stats[k]:.2f} s" for k in stage_names if k in stats)
+    probes = stats.get("records_probes", 0)  # first_hit only
     print(f"pmic stages: {stages}; {stats.get('photons_global', 0)} global + "
-          f"{stats.get('photons_caustic', 0)} caustic photons, {stats.get('records', 0)} records "
-          f"({stats.get('records_probes', 0)} of them at surface probes); first-run compile overhead "
-          f"{pmic.compile_s:.2f} s")
+          f"{stats.get('photons_caustic', 0)} caustic photons, {stats.get('records', 0)} records"
+          f"{f' ({probes} of them at surface probes)' if probes else ''}; first-run compile "
+          f"overhead {pmic.compile_s:.2f} s")
 
     out = args.output
     out.mkdir(parents=True, exist_ok=True)

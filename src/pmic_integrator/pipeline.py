@@ -219,7 +219,8 @@ class Progress:
     def photons(self, kind, stored, target, emitted):
         """The photon tracer's callback."""
         mi.Log(mi.LogLevel.Info, f"pmic: {kind} photons {stored}/{target} ({emitted} paths emitted)")
-        self.update(f"photons ({kind})", stored / max(target, 1), f"{emitted} paths")
+        # Below 1: the stage's line is finished by done(), once, with the stored count.
+        self.update(f"photons ({kind})", min(stored / max(target, 1), 0.999), f"{emitted} paths")
 
     def done(self, stage: str, detail: str = ""):
         self.update(stage, 1.0, detail)
