@@ -309,7 +309,10 @@ def harmonic_mean_distance(scene, p: mi.Point3f, n: mi.Vector3f, strata, seed: i
         return mi.Float(), mi.Float()
     rays = strata[0] * strata[1]
     ray = _stratified_rays(p, n, strata, seed, streams.PILOT_DISTANCE, offset)[0]
-    si = scene.ray_intersect_preliminary(ray, mi.Bool(True))
+    # `active` by keyword: the second positional argument is `coherent`, and Embree's
+    # coherent mode traced these scattered rays 5x slower (0.095 s against 0.018 s
+    # for 262k rays in the Cornell box).
+    si = scene.ray_intersect_preliminary(ray, active=mi.Bool(True))
     inv = dr.select(si.is_valid(), dr.rcp(dr.maximum(si.t, 1e-30)), 0.0)
     total = block_sum(inv, rays)
     nearest = block_sum(dr.select(si.is_valid(), si.t, dr.inf), rays, op="min")

@@ -72,7 +72,10 @@ ENCLOSED_OFFSETS = 100.0
 PROBE_FLOOR = 0.1
 #: Shrinking records may uncover photons, which get records of their own that must obey
 #: the probes' bounds too: repeat at most this many times (a record covers its photon).
-PROBE_CLAMP_PASSES = 4
+#: The photons the last pass uncovers get their records with the uncovered probes', in
+#: one gather: passes beyond the second uncovered 1-20 photons (Cornell box, 100k
+#: photons), each costing a placement and a gather of its own (~15 ms).
+PROBE_CLAMP_PASSES = 3
 #: Candidates walked first, evenly spread, before the ones they leave uncovered.
 PLACEMENT_SUBSET = 16384
 #: Records are placed so as to cover at most this many photons, evenly spread (every
@@ -389,9 +392,11 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
     builder = CacheBuilder(scene, settings, prepared)
     progress.update("cache", 0.05, "placing records at the photons")
     position, normal = builder.placement_photons()
-    index, rounds = builder.build_records(position, normal, None)
+    probes = not settings.final_gather_camera
+    # With probes to come, visibility is settled once, after them (complete_with_probes).
+    index, rounds = builder.build_records(position, normal, None, settle=not probes)
     stats["placement_rounds"] = rounds
-    if not settings.final_gather_camera:
+    if probes:
         progress.update("cache", 0.5, f"{index.records.count} records: surface probes")
         before = index.records.count
         index = builder.complete_with_probes(index)
@@ -470,7 +475,7 @@ class CacheBuilder:
         return (dr.gather(mi.Point3f, cand_p, selected), dr.gather(mi.Vector3f, cand_n, selected),
                 dr.gather(mi.Float, pilot, selected)), rounds
 
-    def build_records(self, cand_p, cand_n, existing: RecordIndex | None, _recursing: bool = False):
+    def build_records(self, cand_p, cand_n, existing: RecordIndex | None, settle: bool = True):
         """Place records among candidates (Fig. 2), compute them, return the index and
         the number of placement rounds.
 
@@ -509,37 +514,48 @@ class CacheBuilder:
                                             self.settings.seed + streams.RECORDS + before, self.offset)
         all_records = existing.records.extend(records) if existing is not None else records
         index = self.index(all_records)
-        # Placement tests coverage without visibility (the records' gathers, which tell
-        # which records reach past a surface, come after it): candidates covered only
-        # by records they cannot see get records of their own. A record covers its own
-        # candidate, so one pass settles it.
-        lost = dr.compress(~index.covered(cand_p, cand_n))
-        if dr.width(lost) and not _recursing:
-            index, more = self.build_records(dr.gather(mi.Point3f, cand_p, lost),
-                                             dr.gather(mi.Vector3f, cand_n, lost), index,
-                                             _recursing=True)
+        if settle:
+            index, more = self.settle(index, cand_p, cand_n)
             rounds += more
         return index, rounds
+
+    def settle(self, index: RecordIndex, cand_p, cand_n):
+        """Records for the candidates that ``index`` leaves uncovered once visibility
+        is known; returns the index and the placement rounds.
+
+        Placement tests coverage without visibility (the records' gathers, which tell
+        which records reach past a surface, come after it): candidates covered only by
+        records they cannot see get records of their own. A record covers its own
+        candidate, so one pass settles it. Callers that build in several steps settle
+        once, at the end, over all their candidates: each step's few lost candidates
+        would otherwise cost a placement and a gather of their own."""
+        lost = dr.compress(~index.covered(cand_p, cand_n))
+        if not dr.width(lost):
+            return index, 0
+        return self.build_records(dr.gather(mi.Point3f, cand_p, lost),
+                                  dr.gather(mi.Vector3f, cand_n, lost), index, settle=False)
 
     def complete_with_probes(self, index: RecordIndex) -> RecordIndex:
         """Surface probes (first-hit estimator): records may not reach a probe further
         than its own pilot radius plus their distance (neighbour clamping against the
         surfaces photons barely reach: the gap between a light and the ceiling), and
         probes that no record is near get records (surfaces no photon reached). Every
-        photon stays covered. View independent: the same for every camera."""
+        photon stays covered. View independent: the same for every camera.
+
+        ``index`` may be unsettled (:meth:`settle`); what this returns is settled."""
         photons = self.prepared.global_map
         photon_p, photon_n = self.placement_photons()
         probe_p, probe_n = surface_probes(self.scene, _probe_count(photons.count),
                                           self.settings.seed)
-        if not dr.width(probe_p.x):
-            return index
         # Only probes among the photons: a vast ground plane far from the light would
         # otherwise fill with records of nearly nothing (the photon map covers it).
-        lo, hi = _bounds(photons.position, 2.0 * self.prepared.global_radius)
-        inside = dr.compress(dr.all((probe_p >= lo) & (probe_p <= hi)))
-        probe_p, probe_n = dr.gather(mi.Point3f, probe_p, inside), dr.gather(mi.Vector3f, probe_n, inside)
+        if dr.width(probe_p.x):
+            lo, hi = _bounds(photons.position, 2.0 * self.prepared.global_radius)
+            inside = dr.compress(dr.all((probe_p >= lo) & (probe_p <= hi)))
+            probe_p = dr.gather(mi.Point3f, probe_p, inside)
+            probe_n = dr.gather(mi.Vector3f, probe_n, inside)
         if not dr.width(probe_p.x):
-            return index
+            return self.settle(index, photon_p, photon_n)[0]
         clamp = every_nth(dr.width(probe_p.x), PROBE_CLAMP_STRIDE)
         clamp_p = dr.gather(mi.Point3f, probe_p, clamp)
         clamp_n = dr.gather(mi.Vector3f, probe_n, clamp)
@@ -550,7 +566,8 @@ class CacheBuilder:
         r_min, r_max = self.radius_bounds()
         clamp_p, clamp_n = dr.gather(mi.Point3f, clamp_p, seen), dr.gather(mi.Vector3f, clamp_n, seen)
         clamp_r = dr.clip(dr.gather(mi.Float, raw, seen), opaque_float(PROBE_FLOOR * r_min), opaque_float(r_max))
-        for _ in range(PROBE_CLAMP_PASSES):
+        pending_p, pending_n = [], []  # photons the last pass uncovered
+        for clamp_pass in range(PROBE_CLAMP_PASSES):
             shrunk = cache_mod.clamp_records_to_points(
                 index, clamp_p, clamp_n, clamp_r, self.scene,
                 VISIBILITY_LIFT * self.prepared.global_radius)
@@ -565,14 +582,22 @@ class CacheBuilder:
             records.radius = shrunk
             index = self.index(records)
             lost = dr.compress(near & ~index.covered(photon_p, photon_n, near))
-            if dr.width(lost):
-                index, _ = self.build_records(dr.gather(mi.Point3f, photon_p, lost),
-                                              dr.gather(mi.Vector3f, photon_n, lost), index)
+            if not dr.width(lost):
+                break
+            lost_p, lost_n = dr.gather(mi.Point3f, photon_p, lost), dr.gather(mi.Vector3f, photon_n, lost)
+            if clamp_pass == PROBE_CLAMP_PASSES - 1:
+                pending_p, pending_n = [lost_p], [lost_n]
+            else:
+                index, _ = self.build_records(lost_p, lost_n, index, settle=False)
         uncovered = dr.compress(~index.covered(probe_p, probe_n))
-        if dr.width(uncovered):
-            index, _ = self.build_records(dr.gather(mi.Point3f, probe_p, uncovered),
-                                          dr.gather(mi.Vector3f, probe_n, uncovered), index)
-        return index
+        probe_p = dr.gather(mi.Point3f, probe_p, uncovered)
+        probe_n = dr.gather(mi.Vector3f, probe_n, uncovered)
+        cand_p = concat(pending_p + [probe_p], mi.Point3f)
+        if dr.width(cand_p.x):
+            index, _ = self.build_records(cand_p, concat(pending_n + [probe_n], mi.Vector3f),
+                                          index, settle=False)
+        return self.settle(index, concat([photon_p, probe_p], mi.Point3f),
+                           concat([photon_n, probe_n], mi.Vector3f))[0]
 
 
 def _probe_count(photons: int) -> int:
