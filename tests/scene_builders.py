@@ -138,3 +138,37 @@ def envmap_exterior(rotate=True, size=(40, 30), bitmap=None):
                      "bsdf": {"type": "plastic",
                               "diffuse_reflectance": {"type": "rgb", "value": [0.7, 0.2, 0.2]}}},
             "sensor": _sensor((2.5, 1.6, 2.5), (0, 0.3, 0), 40, size)}
+
+
+def lamp_room(size=(48, 32)):
+    """A 4 × 3 × 2.5 room lit by a small bright sphere inside a lampshade: an open-top
+    box of two-sided walls, with a 5 mm slit under two of them. Three quarters of the
+    photons stay inside the shade, so the rest of the room (all of what the camera
+    sees, lit off the ceiling) is 100 times sparser than the cluster that sets the
+    lookup radius. The walls are rectangles of one material, which Mitsuba merges into
+    one mesh whose bounding box it reports as invalid (``scene.bbox()`` then spans the
+    lamp alone)."""
+    half_w, half_d, half_h = 2.0, 1.5, 1.25
+    wall = _diffuse((0.5, 0.5, 0.5))
+    shade = {"type": "twosided", "bsdf": _diffuse((0.6, 0.6, 0.6))}
+    scene = {"type": "scene",
+             "sensor": _sensor((0, -half_d + 0.05, 0.2), (0, 0, 0.1), fov=70, size=size, up=(0, 0, 1)),
+             "lamp": {"type": "sphere", "center": [1.2, 0.8, 0.0], "radius": 0.03,
+                      "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [2000.0] * 3}}}}
+    walls = {"floor": T().translate([0, 0, -half_h]).scale([half_w, half_d, 1]),
+             "ceiling": T().translate([0, 0, half_h]).rotate([1, 0, 0], 180).scale([half_w, half_d, 1]),
+             "back": T().translate([0, half_d, 0]).rotate([1, 0, 0], 90).scale([half_w, half_h, 1]),
+             "front": T().translate([0, -half_d, 0]).rotate([1, 0, 0], -90).scale([half_w, half_h, 1]),
+             "left": T().translate([-half_w, 0, 0]).rotate([0, 1, 0], 90).scale([half_h, half_d, 1]),
+             "right": T().translate([half_w, 0, 0]).rotate([0, 1, 0], -90).scale([half_h, half_d, 1])}
+    for name, to_world in walls.items():
+        scene[name] = {"type": "rectangle", "to_world": to_world, "bsdf": wall}
+    center, h = (1.2, 0.8, 0.025), 0.12
+    for i, (axis, angle, offset) in enumerate((((0, 1, 0), 90, (h, 0, 0)), ((0, 1, 0), -90, (-h, 0, 0)),
+                                               ((1, 0, 0), 90, (0, h, 0)), ((1, 0, 0), -90, (0, -h, 0)))):
+        position = [c + o for c, o in zip(center, offset)]
+        scene[f"shade_{i}"] = {"type": "rectangle", "bsdf": shade,
+                               "to_world": T().translate(position).rotate(list(axis), angle).scale([h, 0.125, 1])}
+    scene["shade_base"] = {"type": "rectangle", "bsdf": shade,
+                           "to_world": T().translate([1.2, 0.8, -0.1]).scale(h)}
+    return scene

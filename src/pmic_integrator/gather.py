@@ -16,8 +16,8 @@ import drjit as dr
 import mitsuba as mi
 
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context  # noqa: F401
-from ._jit import opaque_float, segment_blocked
-from .hashgrid import PointGrid
+from ._jit import opaque_float, opaque_u32, segment_blocked
+from .hashgrid import PointGrid, cell_of, hash_cell
 from .irradiance import nearest_photon
 from .photons import PhotonMap
 
@@ -50,12 +50,20 @@ def stratified_directions(strata_theta: int, strata_phi: int, sample_index: mi.U
 class GatherSource:
     """What gather rays read at a diffuse hit: the precomputed-irradiance photons.
 
-    The nearest compatible photon is searched in two steps:
+    The nearest compatible photon is searched in up to three steps:
 
     1. half the lookup radius, in the 2×2×2 nearest cells of ``near_grid`` (cell =
        the radius);
     2. only for lanes step 1 left without a photon, ``SEARCH_REACH`` radii, in
-       ``grid``.
+       ``grid``;
+    3. only for lanes still without one, ``FAR_REACH`` radii, in ``far_grid``: a grid
+       over the *sparse* photons only (those with at most ``SPARSE_CELL_PHOTONS`` in
+       their ``near_grid`` cell). The lookup radius follows the photons' density where
+       most of them are; where they cluster (the inside of a lamp shade, with 3/4 of
+       the map) the rest of the room is far sparser, and 87 % of the gather hits there
+       found no photon within step 2's reach and read zero: 4 % dark overall, 17 % at
+       lookup_size 16. Leaving the dense photons out of step 3 bounds what its large
+       cells hold: a query beside the cluster does not scan the cluster.
 
     A SIMD packet pays for its slowest lane, and a step-2 lane scans ~30 times the
     photons of a step-1 lane: with step 1 a quarter of the radius wide, 18 % of the
@@ -68,6 +76,8 @@ class GatherSource:
     radius: float  #: how far to look for the nearest compatible photon (the coarse cell)
     near_photons: PhotonMap | None = None  #: the same photons in ``near_grid`` order
     near_grid: PointGrid | None = None  #: hash grid with cell = the lookup radius
+    far_photons: PhotonMap | None = None  #: the sparse photons (step 3), ``far_grid`` order
+    far_grid: PointGrid | None = None  #: hash grid over ``far_photons``, cell = FAR_REACH radii
     #: No caustic map: gather rays count emitters met after delta/glossy bounces.
     caustics_by_gathering: bool = False
 
@@ -76,6 +86,12 @@ class GatherSource:
     #: is often beyond one radius. A ray that found none read zero: 10 % dark at
     #: lookup_size 8 in such a room.
     SEARCH_REACH = 4.0
+    #: Step 3 reaches this many lookup radii (16 made the lamp-shade room right: 1.003
+    #: of path's mean, against 0.957 with steps 1-2 alone)...
+    FAR_REACH = 16.0
+    #: ...among the photons with at most this many in their near cell (a disc of one
+    #: radius holds ~lookup_size / 2 where the radius fits the density).
+    SPARSE_CELL_PHOTONS = 2
 
     @staticmethod
     def build(photons: PhotonMap, radius: float) -> "GatherSource":
@@ -86,22 +102,39 @@ class GatherSource:
         reach = radius * GatherSource.SEARCH_REACH
         coarse = PointGrid.build(photons.position, reach)
         near = PointGrid.build(photons.position, radius)
+        near_photons = photons.select(near.order)
+        # Photons per near cell, for each photon (in near order: bucket of the i-th).
+        inv = dr.opaque(mi.Float, 1.0 / radius)
+        bucket = hash_cell(cell_of(near.positions, near.origin, inv), opaque_u32(near.table_mask))
+        occupancy = dr.gather(mi.UInt32, near.cell_start, bucket + 1) - \
+            dr.gather(mi.UInt32, near.cell_start, bucket)
+        sparse = dr.compress(occupancy <= GatherSource.SPARSE_CELL_PHOTONS)
+        far_photons = far_grid = None
+        if dr.width(sparse):
+            far_photons = near_photons.select(sparse)
+            far = PointGrid.build(far_photons.position, radius * GatherSource.FAR_REACH)
+            far_photons, far_grid = far_photons.select(far.order), far.sorted_in_place()
         return GatherSource(photons.select(coarse.order), coarse.sorted_in_place(), reach,
-                            photons.select(near.order), near.sorted_in_place())
+                            near_photons, near.sorted_in_place(), far_photons=far_photons,
+                            far_grid=far_grid)
 
     def nbytes(self) -> int:
         """Bytes of the second photon copy and its grid (the first copy is the map's
         own half, counted with the map)."""
         if self.near_grid is None:
             return 0
-        return self.near_photons.nbytes() + self.near_grid.nbytes()
+        far = 0 if self.far_grid is None else self.far_photons.nbytes() + self.far_grid.nbytes()
+        return self.near_photons.nbytes() + self.near_grid.nbytes() + far
 
     def _steps(self):
         """(photons, grid, reach, octant) of each search step, narrowest first."""
         steps = []
         if self.near_grid is not None:
             steps.append((self.near_photons, self.near_grid, 0.5 * self.near_grid.cell_size, True))
-        return steps + [(self.photons, self.grid, self.radius, False)]
+        steps.append((self.photons, self.grid, self.radius, False))
+        if self.far_grid is not None:
+            steps.append((self.far_photons, self.far_grid, self.far_grid.cell_size, False))
+        return steps
 
     def irradiance_at(self, scene: mi.Scene, si: mi.SurfaceInteraction3f, n: mi.Vector3f,
                       active) -> mi.Color3f:
