@@ -16,8 +16,8 @@ import drjit as dr
 import mitsuba as mi
 
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context  # noqa: F401
-from ._jit import opaque_float, opaque_u32, segment_blocked
-from .hashgrid import PointGrid, cell_of, hash_cell
+from ._jit import opaque_float, segment_blocked
+from .hashgrid import PointGrid
 from .irradiance import nearest_photon
 from .photons import PhotonMap
 
@@ -103,12 +103,8 @@ class GatherSource:
         coarse = PointGrid.build(photons.position, reach)
         near = PointGrid.build(photons.position, radius)
         near_photons = photons.select(near.order)
-        # Photons per near cell, for each photon (in near order: bucket of the i-th).
-        inv = dr.opaque(mi.Float, 1.0 / radius)
-        bucket = hash_cell(cell_of(near.positions, near.origin, inv), opaque_u32(near.table_mask))
-        occupancy = dr.gather(mi.UInt32, near.cell_start, bucket + 1) - \
-            dr.gather(mi.UInt32, near.cell_start, bucket)
-        sparse = dr.compress(occupancy <= GatherSource.SPARSE_CELL_PHOTONS)
+        # Photons in each photon's near cell (near.positions is in near order).
+        sparse = dr.compress(near.occupancy(near.positions) <= GatherSource.SPARSE_CELL_PHOTONS)
         far_photons = far_grid = None
         if dr.width(sparse):
             far_photons = near_photons.select(sparse)

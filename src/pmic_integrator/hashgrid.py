@@ -86,6 +86,16 @@ def _bucket_sort(bucket: mi.UInt32, table_size: int):
     return cell_start, order
 
 
+def _bucket_occupancy(cell_start: mi.UInt32, table_mask: int, origin: mi.Point3f,
+                      cell_size: float, query: mi.Point3f, active=True) -> mi.UInt32:
+    """Entries in the hash bucket of each query's cell (its cell's points, plus any
+    that share the bucket)."""
+    inv = dr.opaque(mi.Float, 1.0 / cell_size)
+    bucket = hash_cell(cell_of(query, origin, inv), dr.opaque(mi.UInt32, table_mask))
+    return dr.gather(mi.UInt32, cell_start, bucket + 1, active) - \
+        dr.gather(mi.UInt32, cell_start, bucket, active)
+
+
 def _visit_entry(keys, positions, index_of, entry, present, key, query, radius2, state, visit,
                  with_offset):
     """``visit`` one grid entry (where ``present``): it counts if it belongs to the
@@ -235,6 +245,11 @@ class PointGrid:
         """Memory held by the grid's own arrays."""
         per_point = 12 + 4 + (4 if self.order is not None else 0)
         return per_point * self.count + 4 * (self.table_mask + 2)
+
+    def occupancy(self, query: mi.Point3f, active=True) -> mi.UInt32:
+        """Points in each query's cell (hash collisions add their buckets' others)."""
+        return _bucket_occupancy(self.cell_start, self.table_mask, self.origin, self.cell_size,
+                                 query, active)
 
     def sorted_in_place(self) -> "PointGrid":
         """The same grid for data already permuted by ``order`` (queries then report
@@ -480,10 +495,8 @@ class PointGridPyramid:
         lanes = dr.width(query.x)
         if self.count == 0 or self.levels == 1:
             return dr.zeros(mi.UInt32, lanes), dr.full(mi.Float, self.radius, lanes)
-        inv = dr.opaque(mi.Float, 1.0 / self.radius)
-        bucket = hash_cell(cell_of(query, self.origin, inv), dr.opaque(mi.UInt32, self.level0_mask))
-        occupancy = mi.Float(dr.gather(mi.UInt32, self.level0_start, bucket + 1, active) -
-                             dr.gather(mi.UInt32, self.level0_start, bucket, active))
+        occupancy = mi.Float(_bucket_occupancy(self.level0_start, self.level0_mask, self.origin,
+                                               self.radius, query, active))
         # ~π c / 1.25 photons per level-0 disc; each level down divides that by 4.
         per_disc = occupancy * (math.pi / 1.25)
         ratio = per_disc / dr.opaque(mi.Float, self.DENSE_FACTOR * max(self.per_estimate, 1.0))

@@ -114,19 +114,17 @@ def scene_bbox(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
     6 cm lamp had a "diagonal" of 0.10 instead of 5.6: records 100 times too small
     (60 000 of them, a 44 s cache stage). Such meshes are bounded by their vertices.
     """
-    box = mi.ScalarBoundingBox3f()
+    box = mi.ScalarBoundingBox3f()  # scene.bbox() is the union of the valid boxes below
     for shape in scene.shapes():
         part = shape.bbox()
         if part.valid():
-            box.expand(mi.ScalarBoundingBox3f(mi.ScalarPoint3f(part.min), mi.ScalarPoint3f(part.max)))
+            box.expand(part)
         elif shape.is_mesh() and shape.vertex_count() > 0:
             v = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
             v = v[np.all(np.isfinite(v), axis=1)]
             if len(v):
-                box.expand(mi.ScalarBoundingBox3f(mi.ScalarPoint3f(*v.min(0)), mi.ScalarPoint3f(*v.max(0))))
-    whole = scene.bbox()
-    if whole.valid():
-        box.expand(mi.ScalarBoundingBox3f(mi.ScalarPoint3f(whole.min), mi.ScalarPoint3f(whole.max)))
+                box.expand(mi.ScalarPoint3f(*v.min(0)))
+                box.expand(mi.ScalarPoint3f(*v.max(0)))
     return box
 
 
