@@ -172,3 +172,35 @@ def lamp_room(size=(48, 32)):
     scene["shade_base"] = {"type": "rectangle", "bsdf": shade,
                            "to_world": T().translate([1.2, 0.8, -0.1]).scale(h)}
     return scene
+
+
+def bent_normal_room(tilt=50.0, size=(32, 24)):
+    """A closed 2 m room whose floor is a two-triangle mesh with vertex normals leaning
+    ``tilt`` degrees towards a strip light low on the left wall: the light crosses the
+    floor at grazing angles, where Mitsuba's BSDFs (which weigh light by the cosine to
+    the *shading* normal) make the floor reflect several times what its geometric
+    cosine, and so its photon flux, says. Coarse meshes with smoothed normals lit from
+    the side (Veach's lamp shades) are the real case."""
+    t = np.radians(tilt)
+    props = mi.Properties()
+    props["bsdf"] = mi.load_dict(_diffuse((0.5, 0.5, 0.5)))
+    floor = mi.Mesh("bent_floor", 4, 2, props, has_vertex_normals=True)
+    params = mi.traverse(floor)
+    params["vertex_positions"] = [-1, -1, -1, 1, -1, -1, 1, -1, 1, -1, -1, 1]
+    params["faces"] = [0, 2, 1, 0, 3, 2]
+    params["vertex_normals"] = [-float(np.sin(t)), float(np.cos(t)), 0.0] * 4
+    params.update()
+    wall = _diffuse((0.5, 0.5, 0.5))
+    scene = {"type": "scene", "sensor": _sensor((0.9, -0.5, 0.9), (-0.5, 0.6, -0.6), 80, size),
+             "floor": floor}
+    walls = {"ceiling": T().translate([0, 1, 0]).rotate([1, 0, 0], 90),
+             "back": T().translate([0, 0, -1]),
+             "front": T().translate([0, 0, 1]).rotate([0, 1, 0], 180),
+             "left": T().translate([-1, 0, 0]).rotate([0, 1, 0], 90),
+             "right": T().translate([1, 0, 0]).rotate([0, 1, 0], -90)}
+    for name, to_world in walls.items():
+        scene[name] = {"type": "rectangle", "to_world": to_world, "bsdf": wall}
+    scene["light"] = {"type": "rectangle",
+                      "to_world": T().translate([-0.99, -0.9, 0]).rotate([0, 1, 0], 90).scale([0.8, 0.08, 1]),
+                      "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [20.0] * 3}}}
+    return scene

@@ -73,3 +73,21 @@ def segment_blocked(scene: mi.Scene, origin: mi.Point3f, target: mi.Point3f, act
     ray = mi.Ray3f(origin, offset / dr.maximum(length, 1e-30))
     ray.maxt = length * 0.999
     return scene.ray_test(ray, mi.Bool(active) & (length > 0))
+
+
+#: Shading normals within this cosine of the geometric normal (0.08°) are taken as the
+#: geometric normal itself: Mitsuba's ``cube`` and merged meshes carry vertex normals
+#: equal to their faces' up to rounding, and a factor of 1 ± 1e-7 would still change
+#: which photons Russian roulette keeps (another noise, not a better image).
+FLAT_SHADING_COSINE = 1.0 - 1e-6
+
+
+def shading_normal_on_side(si: mi.SurfaceInteraction3f, n: mi.Vector3f) -> mi.Vector3f:
+    """``si``'s shading normal turned to the side of ``n`` (its geometric normal on the
+    side that matters), or ``n`` itself, exactly, where the two agree
+    (:data:`FLAT_SHADING_COSINE`) or the shading normal is not finite."""
+    shading_n = mi.Vector3f(si.sh_frame.n)
+    cosine = dr.dot(shading_n, n)
+    shading_n = dr.select(cosine < 0, -shading_n, shading_n)
+    bent = (dr.abs(cosine) < FLAT_SHADING_COSINE) & dr.all(dr.isfinite(shading_n))
+    return dr.select(bent, shading_n, n)

@@ -24,7 +24,8 @@ import mitsuba as mi
 
 from . import streams
 from .gather import GatherSource, stratified_directions, trace_gather_rays
-from ._jit import concat, opaque_float, opaque_u32, rng as make_rng, segment_blocked, surface_offset
+from ._jit import (concat, opaque_float, opaque_u32, rng as make_rng, segment_blocked,
+                   shading_normal_on_side, surface_offset)
 from .hashgrid import BallGrid, PointGrid
 
 # --- Internal tuning constants -------------------------------------------------------
@@ -63,6 +64,9 @@ class CacheRecords:
     grad_t: tuple  #: translational gradient, world space: (∇E_r, ∇E_g, ∇E_b) Vector3f
     grad_r: tuple  #: rotational gradient, world space: (∇E_r, ∇E_g, ∇E_b) Vector3f
     obstacle: mi.Float = None  #: nearest hit of the record's gather (None: not known)
+    #: Shading normal on the lit side, about which irradiance and its rotational
+    #: gradient were gathered (None: ``normal``); see :func:`shading_normals`.
+    shading_normal: mi.Vector3f = None
 
     @property
     def count(self) -> int:
@@ -89,6 +93,10 @@ class CacheRecords:
         if self.obstacle is not None or other.obstacle is not None:
             far = lambda r: r.obstacle if r.obstacle is not None else dr.full(mi.Float, dr.inf, r.count)  # noqa: E731
             obstacle = concat([far(self), far(other)], mi.Float)
+        shading_normal = None
+        if self.shading_normal is not None or other.shading_normal is not None:
+            own = lambda r: r.shading_normal if r.shading_normal is not None else r.normal  # noqa: E731
+            shading_normal = concat([own(self), own(other)], mi.Vector3f)
         return CacheRecords(
             concat([self.position, other.position], mi.Point3f),
             concat([self.normal, other.normal], mi.Vector3f),
@@ -96,10 +104,11 @@ class CacheRecords:
             concat([self.irradiance, other.irradiance], mi.Color3f),
             tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_t, other.grad_t)),
             tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_r, other.grad_r)),
-            obstacle)
+            obstacle, shading_normal)
 
     def nbytes(self) -> int:
-        return 4 * (3 + 3 + 1 + 3 + 18 + (self.obstacle is not None)) * self.count
+        return 4 * (3 + 3 + 1 + 3 + 18 + (self.obstacle is not None)
+                    + 3 * (self.shading_normal is not None)) * self.count
 
 
 def block_sum(values, block: int, op: str = "sum"):
@@ -274,8 +283,38 @@ def _frame(n: mi.Vector3f) -> mi.Frame3f:
     return mi.Frame3f(dr.normalize(n))
 
 
-def _stratified_rays(p, n, strata, seed, stream, offset):
-    """M·N cosine-weighted stratified rays per point, in [point][j][k] order.
+def shading_normals(scene: mi.Scene, p: mi.Point3f, n: mi.Vector3f, offset: float) -> mi.Vector3f:
+    """The shading normal of the surface at each point ``p`` (geometric normal ``n``),
+    turned to ``n``'s side: found by a ray from just off the surface back onto it.
+
+    Mitsuba's BSDFs weigh light by the cosine to the shading normal; a record gathered
+    about the geometric one holds other irradiance than ``path`` reflects. A floor
+    whose vertex normals lean 20° towards a lamp at grazing incidence reflects
+    several times what its geometric cosine says (the final gather read 0.86 of
+    ``path`` there). Where the shading normal *is* the geometric one (flat shapes,
+    spheres, meshes without vertex normals), or no surface is found, ``n`` is
+    returned exactly, so those scenes are unchanged bit for bit.
+    """
+    count = dr.width(p.x)
+    if count == 0:
+        return mi.Vector3f(n)
+    lift = surface_offset(p, offset)
+    ray = mi.Ray3f(p + n * lift, -n)
+    ray.maxt = 2.0 * lift
+    si = scene.ray_intersect(ray, active=mi.Bool(True))
+    # The hit's geometric normal, not n: a sphere's is recomputed from the hit point.
+    geometric_n = dr.select(dr.dot(si.n, n) < 0, -si.n, si.n)
+    shading_n = shading_normal_on_side(si, geometric_n)
+    out = dr.select(si.is_valid() & dr.any(shading_n != geometric_n), shading_n, n)
+    dr.eval(out)
+    return out
+
+
+def _stratified_rays(p, n, strata, seed, stream, offset, about=None):
+    """M·N cosine-weighted stratified rays per point, in [point][j][k] order, about the
+    normals ``about`` (default ``n``, the geometric normals). A ray that leaves below
+    the geometric surface (possible about a shading normal) starts below it, as
+    Mitsuba's ``spawn_ray`` does.
 
     Returns ``(ray, owner, local direction, j, k, rng)``; ``rng`` continues the
     rays' random streams (for glossy bounces along them)."""
@@ -288,13 +327,20 @@ def _stratified_rays(p, n, strata, seed, stream, offset):
     local, j, k = stratified_directions(m_theta, n_phi, lane % rays, rng.next_float32(), rng.next_float32())
     on = dr.gather(mi.Vector3f, n, owner)
     origin = dr.gather(mi.Point3f, p, owner)
-    ray = mi.Ray3f(origin + on * surface_offset(origin, offset), _frame(on).to_world(local))
+    if about is None:
+        ray = mi.Ray3f(origin + on * surface_offset(origin, offset), _frame(on).to_world(local))
+    else:
+        d = _frame(dr.gather(mi.Vector3f, about, owner)).to_world(local)
+        side = dr.select(dr.dot(d, on) < 0, -1.0, 1.0)
+        ray = mi.Ray3f(origin + on * (surface_offset(origin, offset) * side), d)
     return ray, owner, local, j, k, rng
 
 
-def _gather_rays(scene, source, p, n, strata, seed, offset):
-    """Trace M·N stratified rays per point; return per-ray data in [point][j][k] order."""
-    ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, streams.RECORD_GATHER, offset)
+def _gather_rays(scene, source, p, n, strata, seed, offset, about=None):
+    """Trace M·N stratified rays per point (about the normals ``about``, default
+    ``n``); return per-ray data in [point][j][k] order."""
+    ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, streams.RECORD_GATHER, offset,
+                                                    about)
     radiance, distance = trace_gather_rays(scene, source, ray, rng, mi.Bool(True))
     dr.eval(radiance, distance)
     return owner, j, k, local, radiance, distance
@@ -393,13 +439,18 @@ def clamp_records_to_points(index: "RecordIndex", p: mi.Point3f, n: mi.Vector3f,
 
 def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
                     radius: mi.Float, strata, seed: int, offset: float) -> CacheRecords:
-    """Final-gather irradiance and gradients at (p, n); ``radius`` is the record's R."""
+    """Final-gather irradiance and gradients at (p, n); ``radius`` is the record's R.
+
+    The gather (and so the irradiance and its gradients) is about the surface's
+    shading normal (:func:`shading_normals`), the cosine Mitsuba's BSDFs use."""
     count = dr.width(p.x)
     if count == 0:
         return CacheRecords.empty()
     m_theta, n_phi = strata
     rays = m_theta * n_phi
-    owner, j, k, local, radiance, distance = _gather_rays(scene, source, p, n, strata, seed, offset)
+    shading_n = shading_normals(scene, p, n, offset)
+    owner, j, k, local, radiance, distance = _gather_rays(scene, source, p, n, strata, seed, offset,
+                                                          shading_n)
     # E = π/(MN) Σ L for cosine-weighted stratified sampling.
     irradiance = block_sum(radiance, rays) * (math.pi / rays)
 
@@ -439,7 +490,7 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
     v_k = mi.Vector3f(-sm, cm, 0.0)
     phi_term = (sin_plus - sin_minus) / dr.maximum(dr.minimum(d_here, d_prev_k), 1e-30)
 
-    frame = _frame(dr.gather(mi.Vector3f, n, owner))
+    frame = _frame(dr.gather(mi.Vector3f, shading_n, owner))
     grad_t, grad_r = [], []
     for c in range(3):
         dl_j = radiance[c] - l_prev_j[c]
@@ -462,28 +513,30 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
         grad_r[c] = grad_r[c] * dr.minimum(1.0, limit_r / dr.maximum(norm_r, 1e-30))
     nearest = block_sum(distance, rays, op="min")
     records = CacheRecords(mi.Point3f(p), mi.Vector3f(n), mi.Float(radius), mi.Color3f(irradiance),
-                           tuple(grad_t), tuple(grad_r), nearest)
+                           tuple(grad_t), tuple(grad_r), nearest, shading_n)
     dr.eval(records.irradiance, *records.grad_t, *records.grad_r, records.obstacle)
     return records
 
 
 def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f, samples: int,
-                      seed: int, offset: float) -> mi.Color3f:
+                      seed: int, offset: float, shading_normal: mi.Vector3f = None) -> mi.Color3f:
     """Irradiance straight from the emitters at each (position, normal): the mean of
     ``samples`` emitter samples with shadow rays (Mitsuba's emitter importance
-    sampling), each non-finite sample counted as 0."""
+    sampling), each non-finite sample counted as 0. The cosine is to
+    ``shading_normal`` where given (as Mitsuba's BSDFs weigh light)."""
     count = dr.width(position)
     lanes = count * samples
     owner = dr.arange(mi.UInt32, lanes) // opaque_u32(samples)
     p = dr.gather(mi.Point3f, position, owner)
     n = dr.gather(mi.Vector3f, normal, owner)
+    cos_n = n if shading_normal is None else dr.gather(mi.Vector3f, shading_normal, owner)
     ref = dr.zeros(mi.Interaction3f, lanes)
     ref.p = p + n * surface_offset(p, offset)
     ref.n = n
     rng = make_rng(lanes, seed, stream=streams.RECORD_DIRECT)
     ds, weight = scene.sample_emitter_direction(ref, mi.Point2f(rng.next_float32(), rng.next_float32()),
                                                 True)
-    e = weight * dr.maximum(dr.dot(ds.d, n), 0.0)
+    e = weight * dr.maximum(dr.dot(ds.d, cos_n), 0.0)
     e = dr.select((ds.pdf > 0) & dr.all(dr.isfinite(e)), e, 0.0)
     return mi.Color3f(block_sum(mi.Color3f(e), samples)) / samples
 
@@ -546,8 +599,9 @@ class RecordIndex:
         return _covered_by(r.position, r.normal, r.radius, self.grid, x, n, self.max_error, active,
                            visibility=self._visibility())
 
-    def _weighted_sum(self, grid: BallGrid, max_error: float, x, n, active, label):
+    def _weighted_sum(self, grid: BallGrid, max_error: float, x, n, shading_n, active, label):
         r = self.records
+        record_shading_n = r.shading_normal if r.shading_normal is not None else r.normal
         lanes = dr.width(x)
         visibility = self._visibility()
         direct = self.direct
@@ -567,7 +621,10 @@ class RecordIndex:
                                    always=direct is not None)
             e = dr.gather(mi.Color3f, r.irradiance, index, ok)
             dx = x - rp
-            rot = dr.cross(rn, n)
+            # The rotational gradient was gathered about the record's shading normal:
+            # it extrapolates to the query's (the plane and Ward tests above keep the
+            # geometric ones, which say where the surfaces are).
+            rot = dr.cross(dr.gather(mi.Vector3f, record_shading_n, index, ok), shading_n)
             ext = []
             for c in range(3):
                 gt = dr.gather(mi.Vector3f, r.grad_t[c], index, ok)
@@ -585,7 +642,8 @@ class RecordIndex:
         return grid.for_each_ball(x, (dr.zeros(mi.Color3f, lanes), zeros, mi.Float(zeros)), visit,
                                   active=active, label=label)
 
-    def interpolate(self, x: mi.Point3f, n: mi.Vector3f, active=True, with_radius: bool = False):
+    def interpolate(self, x: mi.Point3f, n: mi.Vector3f, active=True, with_radius: bool = False,
+                    shading_n: mi.Vector3f = None):
         """E(x) = Σ wᵢ Eᵢ(x) / Σ wᵢ with gradients; returns ``(E, covered)``, and with
         ``with_radius`` also the weighted mean record radius Σ wᵢ Rᵢ / Σ wᵢ (how far
         the geometry the records saw is: the final gather's trust test).
@@ -593,18 +651,22 @@ class RecordIndex:
         wᵢ is :func:`interpolation_weight` with the maximum error a; lanes that no
         record reaches use the records within ``BACKUP_REACH`` × a instead.
         ``covered`` is False where no record is even within the backup reach.
+        ``n`` is the geometric normal on the side seen from; ``shading_n`` (default
+        ``n``) the shading normal on that side, for the rotational gradient.
         """
         lanes = dr.width(x)
+        shading_n = mi.Vector3f(n if shading_n is None else shading_n)
         if self.records.count == 0:
             zero = dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes)
             return zero + (dr.zeros(mi.Float, lanes),) if with_radius else zero
         self._require_lookup()
         active = mi.Bool(active)
-        total, weight_sum, radius_sum = self._weighted_sum(self.grid, self.max_error, x, n, active,
+        total, weight_sum, radius_sum = self._weighted_sum(self.grid, self.max_error, x, n, shading_n, active,
                                                            "cache_interpolation")
         gap = active & (weight_sum <= 0)
         total_b, weight_b, radius_b = self._weighted_sum(
-            self.backup_grid, self.max_error * BACKUP_REACH, x, n, gap, "cache_interpolation_backup")
+            self.backup_grid, self.max_error * BACKUP_REACH, x, n, shading_n, gap,
+            "cache_interpolation_backup")
         total = dr.select(gap, total_b, total)
         weight_sum = dr.select(gap, weight_b, weight_sum)
         radius_sum = dr.select(gap, radius_b, radius_sum)

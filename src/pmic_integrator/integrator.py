@@ -13,7 +13,7 @@ import mitsuba as mi
 from mitsuba.ad.integrators.common import mis_weight
 
 from . import cachefile, pipeline, streams
-from ._jit import surface_offset
+from ._jit import shading_normal_on_side, surface_offset
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
 from .gather import trace_gather_rays
 from .irradiance import estimate_irradiance
@@ -334,14 +334,14 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                    prepared.caustic_radius, max_depth=self._depth_limit(depth),
                                    active=active)
 
-    def _cache_lookup(self, p, n, active):
+    def _cache_lookup(self, p, n, shading_n, active):
         """``(E, covered, R)``: the cache's interpolated irradiance, where records reach
-        (p, n), and their weighted mean radius."""
+        (p, n), and their weighted mean radius (``shading_n``: see interpolate)."""
         index = self._view.index
         lanes = dr.width(p)
         if index is None:
             return dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes), dr.zeros(mi.Float, lanes)
-        return index.interpolate(p, n, active, with_radius=True)
+        return index.interpolate(p, n, active, with_radius=True, shading_n=shading_n)
 
     def _count_fallback(self, need):
         """Count the camera vertices that no record reached (stats)."""
@@ -488,19 +488,20 @@ class PMICIntegrator(mi.SamplingIntegrator):
             lit_diffuse = active_next & has_diffuse & separable
             n = mi.Vector3f(si.n)
             n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
+            shading_n = shading_normal_on_side(si, n)
 
             # ---- Where the diffuse lobe reads the cache, and where it is traced ----
             cache_ok = lit_diffuse & mi.Bool(use_indirect) & (depth + 3 <= max_depth)
             if dr.hint(gather_first, mode="scalar"):
                 probe = cache_ok & (traced > 0)
-                cached, covered, radius = self._cache_lookup(si.p, n, probe)
+                cached, covered, radius = self._cache_lookup(si.p, n, shading_n, probe)
                 trusted_radius = dr.select(covered, radius, untrusted_radius)
                 trust = probe & ((si.t >= TRUST_RECORD_RADII * trusted_radius) |
                                  (traced >= MAX_TRACED_BOUNCES))
                 traced_here = lit_diffuse & ~trust
             else:
                 trust = mi.Bool(cache_ok)
-                cached, covered, _ = self._cache_lookup(si.p, n, trust & mi.Bool(reads_cache))
+                cached, covered, _ = self._cache_lookup(si.p, n, shading_n, trust & mi.Bool(reads_cache))
                 traced_here = mi.Bool(False)
 
             # Final gather: a trusted vertex reads all of its light from the cache (the

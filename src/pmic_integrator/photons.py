@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
-from ._jit import concat, opaque_u32, rng as make_rng
+from ._jit import concat, opaque_u32, rng as make_rng, shading_normal_on_side
 from .bsdfs import lobes_separable
 from .emission import sample_emitter_rays
 from .streams import photon_batch_seed
@@ -47,6 +47,12 @@ MAX_PHOTON_BOUNCES = 64
 MAX_SURVIVAL = 0.95
 #: Photon maps smaller than this fraction of the request trigger a warning.
 LOW_YIELD_FRACTION = 0.5
+#: Bound on each cosine ratio of the shading-normal correction (see
+#: :func:`shading_normal_factors`): the ratio grows without bound at grazing geometric
+#: angles, and its variance diverges (logarithmically). 100 (a geometric angle of
+#: 89.4°) changed no mean measured: a floor whose normals lean 50° towards a grazing
+#: lamp was 3 % dark with 10, and the lamp room within 0.03 %.
+MAX_SHADING_RATIO = 100.0
 
 
 @dataclass
@@ -55,7 +61,7 @@ class PhotonMap:
 
     position: mi.Point3f  #: where the photon hit the surface
     normal: mi.Vector3f  #: geometric normal, flipped to the side the photon came from
-    power: mi.Color3f  #: flux carried [W], already divided by ``paths_emitted``
+    power: mi.Color3f  #: flux [W] over ``paths_emitted``, times the shading-normal factor (see shading_normal_factors)
     depth: mi.UInt32  #: surface interactions since the emitter (1 = direct light)
     specular_path: mi.Bool  #: every earlier bounce was delta/glossy (L S* D: direct or caustic)
     path: mi.UInt32 = None  #: index of the light path that stored the photon, in [0, paths_emitted)
@@ -111,6 +117,39 @@ def _is_specular(flags) -> mi.Bool:
     return mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy)
 
 
+def shading_normal_factors(si: mi.SurfaceInteraction3f, n: mi.Vector3f, to_light: mi.Vector3f,
+                           wo_local: mi.Vector3f | None = None):
+    """Factors that make photons agree with ``path`` on meshes with shading normals.
+
+    Mitsuba's BSDFs weight light by the cosine to the *shading* normal, while photon
+    flux lands on the *geometric* surface. Light arriving from ``to_light`` (world
+    space; ``n`` the geometric normal on its side) is therefore reflected
+    cos_s/cos_g times what its flux says: ``arrival`` = |ω·n_s| / |ω·n_g| (0 where the
+    shading hemisphere has ω below it, as the BSDF has). Stored photons carry it, so
+    that density estimates give the irradiance the BSDF sees. The lamp shades of
+    Veach's lamp room (smooth normals on a coarse cone, lit at grazing angles)
+    reflect 1.67x what their flux says: without it that room was 4 % dark.
+
+    With ``wo_local`` (a sampled scattering direction in the shading frame), also the
+    factor a photon's flux takes on scattering, Veach's adjoint-BSDF correction
+    (thesis, sec. 5.3): ``arrival`` × |ωₒ·n_g| / |ωₒ·n_s|. Both are exactly 1 where the
+    shading normal is the geometric one (flat shapes, spheres, meshes without vertex
+    normals: :func:`shading_normal_on_side`), so those scenes are unchanged.
+    """
+    shading_n = shading_normal_on_side(si, n)
+    cos_g_in = dr.abs(dr.dot(n, to_light))
+    arrival = dr.minimum(dr.maximum(dr.dot(shading_n, to_light), 0.0) / dr.maximum(cos_g_in, 1e-8),
+                         MAX_SHADING_RATIO)
+    flat = dr.all(shading_n == n)
+    arrival = dr.select(flat, 1.0, arrival)
+    if wo_local is None:
+        return arrival
+    cos_g_out = dr.abs(dr.dot(n, si.to_world(wo_local)))
+    cos_s_out = dr.abs(mi.Frame3f.cos_theta(wo_local))
+    leaving = dr.minimum(cos_g_out / dr.maximum(cos_s_out, 1e-8), MAX_SHADING_RATIO)
+    return arrival, arrival * dr.select(flat, 1.0, leaving)
+
+
 def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
                  max_store_depth: int):
     """Trace ``n_paths`` light paths; return photon arrays and their path indices."""
@@ -144,12 +183,13 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         # from the other side of a thin wall reject it.
         n = mi.Vector3f(si.n)
         n = dr.select(dr.dot(n, -ray.d) < 0, -n, n)
-        dr.eval(store, si.p, n, flux, specular_so_far)
+        stored_power = flux * shading_normal_factors(si, n, -ray.d)
+        dr.eval(store, si.p, n, stored_power, specular_so_far)
         idx = dr.compress(store)
         if dr.width(idx) > 0:
             out["position"].append(dr.gather(mi.Point3f, si.p, idx))
             out["normal"].append(dr.gather(mi.Vector3f, n, idx))
-            out["power"].append(dr.gather(mi.Color3f, flux, idx))
+            out["power"].append(dr.gather(mi.Color3f, stored_power, idx))
             out["depth"].append(dr.zeros(mi.UInt32, dr.width(idx)) + opaque_u32(bounce))
             out["specular"].append(dr.gather(mi.Bool, specular_so_far, idx))
             out["path"].append(dr.gather(mi.UInt32, path_id, idx))
@@ -157,6 +197,7 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
             break
         bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(),
                                       mi.Point2f(rng.next_float32(), rng.next_float32()), valid)
+        bsdf_weight = bsdf_weight * shading_normal_factors(si, n, -ray.d, bs.wo)[1]
         # A bounce off a BSDF that ignores lobe masks (principled) counts as diffuse:
         # the camera path cannot split its lobes either, so it must not be a caustic.
         sampled_specular = _is_specular(bs.sampled_type) & lobes_separable(

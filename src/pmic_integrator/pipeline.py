@@ -432,7 +432,7 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
         progress.update("cache", 0.7, f"{index.records.count} records: direct light")
         index.direct = cache_mod.direct_irradiance(
             scene, index.records.position, index.records.normal, cache_mod.RECORD_DIRECT_SAMPLES,
-            settings.seed, prepared.ray_offset)
+            settings.seed, prepared.ray_offset, shading_normal=index.records.shading_normal)
         dr.eval(index.direct)
     stats["records"] = index.records.count
     progress.done("cache", f"{index.records.count} records")
