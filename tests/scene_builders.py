@@ -204,3 +204,23 @@ def bent_normal_room(tilt=50.0, size=(32, 24)):
                       "to_world": T().translate([-0.99, -0.9, 0]).rotate([0, 1, 0], 90).scale([0.8, 0.08, 1]),
                       "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [20.0] * 3}}}
     return scene
+
+
+def sun_shelter(size=(40, 30), sky=False):
+    """A roofed wall on an 8 m ground under a sun (``directional``), optionally with a
+    constant sky. Ground and boxes share one material, and Mitsuba merges them into
+    one mesh whose ``bbox()`` spans the boxes only (2.4 m): the sun's photons, shot
+    from a disk round that box, lit the ground within 2 m of its centre."""
+    scene = {"type": "scene",
+             "sun": {"type": "directional", "direction": [-0.5, -1, -0.3],
+                     "irradiance": {"type": "rgb", "value": [3.0] * 3}},
+             "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(4),
+                        "bsdf": {"type": "diffuse"}},
+             "wall": {"type": "cube", "to_world": T().translate([0, 0.5, -0.6]).scale([1.2, 0.5, 0.1]),
+                      "bsdf": {"type": "diffuse"}},
+             "roof": {"type": "cube", "to_world": T().translate([0, 1.05, 0]).scale([1.2, 0.05, 0.7]),
+                      "bsdf": {"type": "diffuse"}},
+             "sensor": _sensor((2.0, 1.0, 2.5), (0, 0.4, 0), 45, size)}
+    if sky:
+        scene["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.4, 0.5, 0.7]}}
+    return scene

@@ -28,6 +28,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import cache as cache_mod, streams
+from .emission import scene_bbox  # noqa: F401  (re-exported: pipeline.scene_bbox)
 from ._jit import concat, every_nth, opaque_float, rng as make_rng
 from .bsdfs import non_diffuse_context
 from .cache import CacheRecords, RecordIndex
@@ -103,29 +104,6 @@ CAUSTIC_MIN_YIELD = 0.25
 MAX_PATHS_PER_PHOTON = 100
 #: ...and never less than this many paths (small requests in dim scenes).
 MIN_MAX_PATHS = 1 << 22
-
-
-def scene_bbox(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
-    """The scene's bounding box, from its shapes.
-
-    ``scene.bbox()`` is not enough: in Mitsuba 3.9 a mesh that the scene merged from
-    several shapes (rectangles of one material, loaded with ``load_dict``) reports an
-    invalid box, and the scene's box leaves it out. A room of six such walls around a
-    6 cm lamp had a "diagonal" of 0.10 instead of 5.6: records 100 times too small
-    (60 000 of them, a 44 s cache stage). Such meshes are bounded by their vertices.
-    """
-    box = mi.ScalarBoundingBox3f()  # scene.bbox() is the union of the valid boxes below
-    for shape in scene.shapes():
-        part = shape.bbox()
-        if part.valid():
-            box.expand(part)
-        elif shape.is_mesh() and shape.vertex_count() > 0:
-            v = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
-            v = v[np.all(np.isfinite(v), axis=1)]
-            if len(v):
-                box.expand(mi.ScalarPoint3f(*v.min(0)))
-                box.expand(mi.ScalarPoint3f(*v.max(0)))
-    return box
 
 
 @dataclass
