@@ -155,3 +155,18 @@ def test_progress_writes_one_line_per_stage_to_a_log():
     progress.done("photons (global)", "1000 stored")
     lines = [line for line in log.getvalue().replace("\r", "\n").split("\n") if line.strip()]
     assert len(lines) == 1 and "100%" in lines[0] and "1000 stored" in lines[0], lines
+
+
+@pytest.mark.parametrize("max_depth, holds", [(-1, True), (6, False)])
+def test_final_gather_records_hold_caustics_only_at_unbounded_depth(max_depth, holds):
+    """Final-gather records add the caustic map's irradiance (camera paths then skip
+    the caustic read where they read the cache); with a bounded max_depth the read
+    stays per vertex, where its depth is known."""
+    from pmic_integrator import scenes
+
+    scene = scenes.load_scene("cornell_caustics", resolution=16, spp=1)
+    integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC, "max_depth": max_depth})
+    integrator.build_cache(scene)
+    index = integrator.prepared.index
+    assert integrator.prepared.caustic_map.count > 0
+    assert index.holds_caustics is holds

@@ -559,6 +559,9 @@ class RecordIndex:
     #: Direct irradiance at each record (final gather: the gather hit reflects all of
     #: its light), added to the indirect irradiance when interpolating; None: not kept.
     direct: mi.Color3f = None
+    #: ``direct`` holds the caustic map's irradiance at each record too (light that
+    #: reached the record through delta/glossy bounces): readers need no caustic lookup.
+    holds_caustics: bool = False
 
     @staticmethod
     def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0,
@@ -582,6 +585,7 @@ class RecordIndex:
             return self
         index = RecordIndex.build(self.records, self.max_error, self.scene, self.lift)
         index.direct = self.direct
+        index.holds_caustics = self.holds_caustics
         return index
 
     def _require_lookup(self):

@@ -417,6 +417,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             prepared.global_map.count > 0
         reads_cache = self.settings.method != "photon_map"
         gather_first = self.settings.final_gather_camera
+        records_hold_caustics = prepared.index is not None and prepared.index.holds_caustics
         untrusted_radius = prepared.global_radius  # trust test where no record reaches
         # BSDF sampling of the diffuse lobe for direct light, combined with emitter
         # sampling by MIS: emitter sampling alone is noisy for large emitters (skies).
@@ -527,6 +528,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
             read_caustic = (trust | traced_here) & mi.Bool(has_caustic_map) & (depth + 3 <= max_depth)
             if dr.hint(gather_first, mode="scalar"):
                 read_caustic &= ~(trust & ~covered)  # the photon's irradiance has them
+                if dr.hint(records_hold_caustics, mode="scalar"):
+                    read_caustic &= ~trust  # and so do the records
             response = diffuse_response(bsdf, si, trust | read_caustic)
             caustic = _finite(β * response * self._caustic_irradiance(si.p, n, depth, read_caustic),
                               read_caustic)
