@@ -665,8 +665,8 @@ class RecordIndex:
             return zero + (dr.zeros(mi.Float, lanes),) if with_radius else zero
         self._require_lookup()
         active = mi.Bool(active)
-        total, weight_sum, radius_sum = self._weighted_sum(self.grid, self.max_error, x, n, shading_n, active,
-                                                           "cache_interpolation")
+        total, weight_sum, radius_sum = self._weighted_sum(
+            self.grid, self.max_error, x, n, shading_n, active, "cache_interpolation")
         gap = active & (weight_sum <= 0)
         total_b, weight_b, radius_b = self._weighted_sum(
             self.backup_grid, self.max_error * BACKUP_REACH, x, n, shading_n, gap,

@@ -85,8 +85,13 @@ def _finite(weight) -> mi.Bool:
     return ok
 
 
-def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active=True):
+def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active=True,
+                        sphere: tuple | None = None):
     """Sample emitted rays; same meaning and return value as ``scene.sample_emitter_ray``.
+
+    ``sphere`` is :func:`emission_sphere`'s ``(centre, radius)`` for ``scene``, computed
+    here when not given (callers that sample in batches compute it once: it reads
+    every mesh's vertices).
 
     Returns ``(ray, weight, emitter)``: ``weight`` is the flux carried by the sample
     (emitted radiance over the spatio-directional density, including ``1/pmf`` of the
@@ -119,7 +124,7 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
 
     # Infinite emitters: direction from sample_direction, origin on a disk of radius R
     # perpendicular to the *world-space* direction, placed outside the bounding sphere.
-    center, radius = emission_sphere(scene)
+    center, radius = emission_sphere(scene) if sphere is None else sphere
     center_v = mi.Point3f(center)
     it = dr.zeros(mi.Interaction3f, n)
     it.p = center_v

@@ -26,7 +26,7 @@ import mitsuba as mi
 
 from ._jit import concat, opaque_u32, rng as make_rng, shading_normal_on_side
 from .bsdfs import lobes_separable
-from .emission import sample_emitter_rays
+from .emission import emission_sphere, sample_emitter_rays
 from .streams import photon_batch_seed
 
 log = logging.getLogger("pmic")
@@ -61,7 +61,9 @@ class PhotonMap:
 
     position: mi.Point3f  #: where the photon hit the surface
     normal: mi.Vector3f  #: geometric normal, flipped to the side the photon came from
-    power: mi.Color3f  #: flux [W] over ``paths_emitted``, times the shading-normal factor (see shading_normal_factors)
+    #: flux [W] over ``paths_emitted``, times the arrival factor of
+    #: :func:`shading_normal_factors` (the irradiance the BSDF sees)
+    power: mi.Color3f
     depth: mi.UInt32  #: surface interactions since the emitter (1 = direct light)
     specular_path: mi.Bool  #: every earlier bounce was delta/glossy (L S* D: direct or caustic)
     path: mi.UInt32 = None  #: index of the light path that stored the photon, in [0, paths_emitted)
@@ -151,15 +153,16 @@ def shading_normal_factors(si: mi.SurfaceInteraction3f, n: mi.Vector3f, to_light
 
 
 def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
-                 max_store_depth: int):
-    """Trace ``n_paths`` light paths; return photon arrays and their path indices."""
+                 max_store_depth: int, sphere: tuple):
+    """Trace ``n_paths`` light paths; return photon arrays and their path indices.
+    ``sphere``: the scene's :func:`emission_sphere`."""
     rng = make_rng(n_paths, seed, stream=first_path)
     path_id = dr.arange(mi.UInt32, n_paths) + opaque_u32(first_path)
     # Not scene.sample_emitter_ray: Mitsuba 3.9 places a rotated envmap's ray origins
     # on a disk tilted against the rays (too bright by up to 1.8x); see emission.py.
     ray, flux, _ = sample_emitter_rays(
         scene, mi.Float(0.0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
-        mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True))
+        mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True), sphere=sphere)
     specular_so_far = dr.full(mi.Bool, True, n_paths)
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
     out = {k: [] for k in ("position", "normal", "power", "depth", "specular", "path")}
@@ -245,11 +248,12 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     batch = 0
     batch_paths = min(FIRST_BATCH_PATHS, max(1024, 2 * target), max_paths)
     start = time.perf_counter()
+    sphere = emission_sphere(scene)  # once: every batch shoots from the same disk
     while stored < target and emitted < max_paths:
         batch_paths = int(min(batch_paths, max_paths - emitted))
         pos, nrm, pwr, dep, spec, path = _trace_batch(
             scene, kind, emitted, batch_paths, photon_batch_seed(seed, batch, kind == CAUSTIC),
-            max_store_depth)
+            max_store_depth, sphere)
         got = dr.width(dep)
         remaining = target - stored
         used_paths = batch_paths
