@@ -166,3 +166,68 @@ def test_weight_falls_continuously_to_zero_at_the_reach():
     assert (w[err.numpy() >= a] == 0).all()
     assert w[49] < 0.05  # just inside the reach: nearly zero, no brightness step
     assert (np.diff(w) <= 0).all()
+
+
+def _guided_records():
+    """Two records on a floor (normal +z), 1 apart. Record 0's gather met light in
+    three directions with luminance 1, 2 and 5; record 1's met none."""
+    directions = np.array([[0.0, 0.0, 1.0], [0.8, 0.0, 0.6], [-0.48, 0.64, 0.6]], dtype=np.float32)
+    owner = mi.UInt32([0, 0, 0, 1])
+    d = np.vstack([directions, [[0.0, 0.0, 1.0]]])
+    lum = np.array([1.0, 2.0, 5.0, 0.0], dtype=np.float32)
+    guide = cache.guide_cdfs(owner, mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]),
+                             mi.Color3f(lum, lum, lum), 2)
+    zeros = mi.Vector3f([0.0, 0.0], [0.0, 0.0], [0.0, 0.0])
+    records = CacheRecords(mi.Point3f([0.0, 1.0], [0.0, 0.0], [0.0, 0.0]),
+                           mi.Vector3f([0.0, 0.0], [0.0, 0.0], [1.0, 1.0]), mi.Float([1.0, 1.0]),
+                           mi.Color3f([0.3, 0.3], [0.3, 0.3], [0.3, 0.3]), (zeros,) * 3, (zeros,) * 3,
+                           guide=guide)
+    return RecordIndex.build(records, 0.5), directions, np.array([1.0, 2.0, 5.0]) / 8.0
+
+
+def test_guide_samples_follow_the_gathered_light_and_their_density():
+    """Directions drawn from a record's distribution fall in the bins of its gather's
+    light in proportion to that light (1 : 2 : 5), and guide_pdf is exactly the bin's
+    probability over its solid angle, integrating to 1 over the sphere."""
+    index, directions, expected = _guided_records()
+    count = 200_000
+    rng = np.random.default_rng(3)
+    u = mi.Point2f(rng.random(count, dtype=np.float32), rng.random(count, dtype=np.float32))
+    record = dr.zeros(mi.UInt32, count)
+    d = index.sample_guide(record, u)
+    d_np = np.array(d).T if np.array(d).shape[0] == 3 else np.array(d)
+    assert np.allclose(np.linalg.norm(d_np, axis=1), 1.0, atol=1e-5)
+    bins = np.array(cache.guide_bin(d))
+    wanted = np.array(cache.guide_bin(mi.Vector3f(*directions.T)))
+    assert len(set(wanted.tolist())) == 3
+    for b, p in zip(wanted, expected):
+        assert abs(np.mean(bins == b) - p) < 0.005
+    assert np.isin(bins, wanted).all()
+    pdf = np.array(index.guide_pdf(record, d))
+    solid = cache.GUIDE_BIN_SOLID_ANGLE
+    for b, p in zip(wanted, expected):
+        assert np.allclose(pdf[bins == b] * solid, p, rtol=1e-5)
+    # One direction at the centre of every bin: Σ pdf · solid angle = 1.
+    band, sector = np.divmod(np.arange(cache.GUIDE_BINS), cache.GUIDE_SECTORS)
+    z = -1.0 + (band + 0.5) * 2.0 / cache.GUIDE_BANDS
+    phi = (sector + 0.5) * 2.0 * np.pi / cache.GUIDE_SECTORS
+    s = np.sqrt(1.0 - z * z)
+    centres = mi.Vector3f(s * np.cos(phi), s * np.sin(phi), z)
+    assert list(np.array(cache.guide_bin(centres))) == list(range(cache.GUIDE_BINS))
+    total = np.sum(np.array(index.guide_pdf(dr.zeros(mi.UInt32, cache.GUIDE_BINS), centres))) * solid
+    assert abs(total - 1.0) < 1e-5
+
+
+def test_guide_record_skips_records_that_gathered_no_light():
+    """A point that only record 1 (no light gathered) reaches has no guide; one that
+    record 0 reaches gets it, with the bounced share of its irradiance (no direct
+    light kept here: all of it)."""
+    index, _, _ = _guided_records()
+    x = mi.Point3f([0.05, 1.05], [0.0, 0.0], [0.0, 0.0])
+    n = mi.Vector3f([0.0, 0.0], [0.0, 0.0], [1.0, 1.0])
+    record, share = index.guide_record(x, n)
+    assert list(np.array(share)) == [1.0, 0.0]
+    assert int(np.array(record)[0]) == 0
+    index.direct = mi.Color3f([0.9, 0.0], [0.9, 0.0], [0.9, 0.0])
+    _, share = index.guide_record(x, n)
+    assert abs(float(np.array(share)[0]) - 0.25) < 1e-6

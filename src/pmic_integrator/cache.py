@@ -51,6 +51,15 @@ GRADIENT_LIMIT = 1.0
 #: light's irradiance varies by a few % over its solid angle, so 64 samples give ~1 %
 #: where it is in full view; the error is read one diffuse bounce away from the camera.
 RECORD_DIRECT_SAMPLES = 64
+#: Guiding (final gather): each record keeps how its gather's radiance was spread over
+#: directions, in equal-area bins of the whole sphere in world space (GUIDE_BANDS bands
+#: of z = cos θ × GUIDE_SECTORS sectors of φ: no frame to match between a record and
+#: the point it guides). 128 bins of 0.1 sr: fine enough to send rays towards a bright
+#: opening or a lit lamp housing, coarse enough for 256 gather rays to fill.
+GUIDE_BANDS = 8
+GUIDE_SECTORS = 16
+GUIDE_BINS = GUIDE_BANDS * GUIDE_SECTORS
+GUIDE_BIN_SOLID_ANGLE = 4.0 * math.pi / GUIDE_BINS
 
 
 @dataclass
@@ -67,6 +76,10 @@ class CacheRecords:
     #: Shading normal on the lit side, about which irradiance and its rotational
     #: gradient were gathered (None: ``normal``); see :func:`shading_normals`.
     shading_normal: mi.Vector3f = None
+    #: Directional distribution of the gathered radiance (see :func:`guide_cdfs`):
+    #: GUIDE_BINS cumulative probabilities per record, record-major; a record whose
+    #: gather found no light has zeros (it guides nothing). None: not computed.
+    guide: mi.Float = None
 
     @property
     def count(self) -> int:
@@ -97,6 +110,10 @@ class CacheRecords:
         if self.shading_normal is not None or other.shading_normal is not None:
             own = lambda r: r.shading_normal if r.shading_normal is not None else r.normal  # noqa: E731
             shading_normal = concat([own(self), own(other)], mi.Vector3f)
+        guide = None
+        if self.guide is not None or other.guide is not None:
+            bins = lambda r: r.guide if r.guide is not None else dr.zeros(mi.Float, r.count * GUIDE_BINS)  # noqa: E731
+            guide = concat([bins(self), bins(other)], mi.Float)
         return CacheRecords(
             concat([self.position, other.position], mi.Point3f),
             concat([self.normal, other.normal], mi.Vector3f),
@@ -104,11 +121,12 @@ class CacheRecords:
             concat([self.irradiance, other.irradiance], mi.Color3f),
             tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_t, other.grad_t)),
             tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_r, other.grad_r)),
-            obstacle, shading_normal)
+            obstacle, shading_normal, guide)
 
     def nbytes(self) -> int:
         return 4 * (3 + 3 + 1 + 3 + 18 + (self.obstacle is not None)
-                    + 3 * (self.shading_normal is not None)) * self.count
+                    + 3 * (self.shading_normal is not None)
+                    + GUIDE_BINS * (self.guide is not None)) * self.count
 
 
 def block_sum(values, block: int, op: str = "sum"):
@@ -512,10 +530,42 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
         norm_r = dr.norm(grad_r[c])
         grad_r[c] = grad_r[c] * dr.minimum(1.0, limit_r / dr.maximum(norm_r, 1e-30))
     nearest = block_sum(distance, rays, op="min")
+    guide = guide_cdfs(owner, mi.Vector3f(frame.to_world(local)), radiance, count)
     records = CacheRecords(mi.Point3f(p), mi.Vector3f(n), mi.Float(radius), mi.Color3f(irradiance),
-                           tuple(grad_t), tuple(grad_r), nearest, shading_n)
+                           tuple(grad_t), tuple(grad_r), nearest, shading_n, guide)
     dr.eval(records.irradiance, *records.grad_t, *records.grad_r, records.obstacle)
     return records
+
+
+# --------------------------------------------------------------------------------------
+# Guiding: where a record's gathered light came from
+# --------------------------------------------------------------------------------------
+def guide_bin(d: mi.Vector3f) -> mi.UInt32:
+    """The equal-area sphere bin of the world-space unit direction ``d``."""
+    band = mi.UInt32(dr.clip((d.z + 1.0) * (0.5 * GUIDE_BANDS), 0.0, GUIDE_BANDS - 1))
+    phi = dr.atan2(d.y, d.x)
+    phi = dr.select(phi < 0, phi + 2.0 * math.pi, phi)
+    sector = mi.UInt32(dr.clip(phi * (GUIDE_SECTORS / (2.0 * math.pi)), 0.0, GUIDE_SECTORS - 1))
+    return band * GUIDE_SECTORS + sector
+
+
+def guide_cdfs(owner: mi.UInt32, direction: mi.Vector3f, radiance: mi.Color3f, count: int) -> mi.Float:
+    """Per record, the cumulative distribution over :func:`guide_bin` bins of its
+    gather rays' luminance. The rays are cosine distributed, so a bin's sum is
+    proportional to the irradiance arriving through it: the density a diffuse lobe
+    would want to sample. Summed on the host with NumPy (a fixed order: the same
+    records bit for bit; a parallel float scatter-add is not)."""
+    import numpy as np
+
+    lum = np.array(0.2126 * radiance.x + 0.7152 * radiance.y + 0.0722 * radiance.z, dtype=np.float64)
+    lum = np.where(np.isfinite(lum) & (lum > 0), lum, 0.0)
+    slot = np.array(owner, dtype=np.int64) * GUIDE_BINS + np.array(guide_bin(direction), dtype=np.int64)
+    hist = np.bincount(slot, weights=lum, minlength=count * GUIDE_BINS).reshape(count, GUIDE_BINS)
+    cdf = np.cumsum(hist, axis=1)
+    total = cdf[:, -1:]
+    cdf = np.where(total > 0, cdf / np.where(total > 0, total, 1.0), 0.0)
+    cdf[:, -1] = np.where(total[:, 0] > 0, 1.0, 0.0)  # exactly 1: u < 1 always finds a bin
+    return mi.Float(cdf.astype(np.float32).ravel())
 
 
 def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f, samples: int,
@@ -645,6 +695,84 @@ class RecordIndex:
         zeros = dr.zeros(mi.Float, lanes)
         return grid.for_each_ball(x, (dr.zeros(mi.Color3f, lanes), zeros, mi.Float(zeros)), visit,
                                   active=active, label=label)
+
+    @property
+    def guides(self) -> bool:
+        """The records carry directional distributions (:meth:`guide_record`)."""
+        return self.records.guide is not None and self.records.count > 0
+
+    def guide_record(self, x: mi.Point3f, n: mi.Vector3f, active=True):
+        """``(record, share)``: the first record in the grid cell of x that reaches
+        (x, n) and gathered some light (its distribution guides the sampling at x;
+        stopping at the first, not the nearest, halves the cost of the walk), and the
+        share of bounced light in its irradiance (0 where no record was found). A
+        deterministic function of (x, n), so that the
+        guided density can be evaluated at any direction (MIS). No visibility test:
+        a record behind a thin wall only guides worse, never wrongly (the BSDF
+        density stays in the mixture)."""
+        r = self.records
+        lanes = dr.width(x)
+        last = opaque_u32(GUIDE_BINS - 1)
+
+        def visit(state, index, valid):
+            best_w, best = state
+            rp = dr.gather(mi.Point3f, r.position, index, valid)
+            rn = dr.gather(mi.Vector3f, r.normal, index, valid)
+            rr = dr.gather(mi.Float, r.radius, index, valid)
+            ok = valid & covers(x, n, rp, rn, rr, self.max_error)
+            w = interpolation_weight(ward_error(x, n, rp, rn, rr), self.max_error)
+            ok &= (w > 0) & (dr.gather(mi.Float, r.guide, index * GUIDE_BINS + last, ok) > 0)
+            return dr.select(ok, w, best_w), dr.select(ok, index, best)
+
+        if not self.guides:
+            return dr.zeros(mi.UInt32, lanes), dr.zeros(mi.Float, lanes)
+        self._require_lookup()
+        best_w, best = self.grid.for_each_ball(
+            x, (dr.zeros(mi.Float, lanes), dr.zeros(mi.UInt32, lanes)), visit,
+            active=mi.Bool(active), finished=lambda state: state[0] > 0, label="cache_guide_record")
+        found = mi.Bool(active) & (best_w > 0)
+        # The share of bounced light in the record's irradiance: where direct light
+        # is most of it (a sunlit ground), BSDF sampling also serves direct light
+        # (MIS with the emitters) and keeps most of the rays.
+        luminance = lambda c: 0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z  # noqa: E731
+        bounced = luminance(dr.gather(mi.Color3f, r.irradiance, best, found))
+        total = bounced
+        if self.direct is not None:
+            total = total + luminance(dr.gather(mi.Color3f, self.direct, best, found))
+        share = dr.select(found & (total > 0), dr.clip(bounced / dr.maximum(total, 1e-30), 0.0, 1.0), 0.0)
+        return best, share
+
+    def sample_guide(self, record: mi.UInt32, u: mi.Point2f, active=True) -> mi.Vector3f:
+        """A world-space direction from ``record``'s distribution: a bin by its
+        probability (a binary search of the cumulative table), then uniformly within
+        the bin's area on the sphere."""
+        cdf = self.records.guide
+        start = record * GUIDE_BINS
+        below = dr.zeros(mi.UInt32, dr.width(record))  # bins whose cumulative value < u.x
+        step = GUIDE_BINS // 2
+        while step >= 1:
+            go = dr.gather(mi.Float, cdf, start + below + (step - 1), active) < u.x
+            below = dr.select(go, below + step, below)
+            step //= 2
+        upper = dr.gather(mi.Float, cdf, start + below, active)
+        lower = dr.select(below > 0, dr.gather(mi.Float, cdf, start + below - 1, active & (below > 0)), 0.0)
+        t = dr.clip((u.x - lower) / dr.maximum(upper - lower, 1e-30), 0.0, 1.0)
+        band = mi.Float(below // GUIDE_SECTORS)
+        sector = mi.Float(below % GUIDE_SECTORS)
+        z = dr.clip(-1.0 + (band + t) * (2.0 / GUIDE_BANDS), -1.0, 1.0)
+        phi = (sector + u.y) * (2.0 * math.pi / GUIDE_SECTORS)
+        sin_t = dr.safe_sqrt(1.0 - z * z)
+        sp, cp = dr.sincos(phi)
+        return mi.Vector3f(sin_t * cp, sin_t * sp, z)
+
+    def guide_pdf(self, record: mi.UInt32, d: mi.Vector3f, active=True) -> mi.Float:
+        """Solid-angle density of :meth:`sample_guide` at world direction ``d``."""
+        cdf = self.records.guide
+        b = guide_bin(d)
+        slot = record * GUIDE_BINS + b
+        upper = dr.gather(mi.Float, cdf, slot, active)
+        lower = dr.select(b > 0, dr.gather(mi.Float, cdf, slot - 1, active & (b > 0)), 0.0)
+        return dr.select(active, dr.maximum(upper - lower, 0.0) * (1.0 / GUIDE_BIN_SOLID_ANGLE), 0.0)
 
     def interpolate(self, x: mi.Point3f, n: mi.Vector3f, active=True, with_radius: bool = False,
                     shading_n: mi.Vector3f = None):

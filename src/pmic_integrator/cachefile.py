@@ -29,7 +29,8 @@ FORMAT = "pmic-cache"
 #: 3: gather sources hold the sparse photons' far grid (GatherSource.far_grid).
 #: 4: records hold their shading normals; photon powers carry the shading-normal factor.
 #: 5: final-gather records may hold the caustic map's irradiance (holds_caustics).
-VERSION = 5
+#: 6: records hold their directional distribution of gathered light (guiding).
+VERSION = 6
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

@@ -103,6 +103,7 @@ class Settings:
     final_gather: bool = False
     max_photon_paths: int = 0
     direct_samples: int = 4
+    guiding: bool = True
     seed: int = 0
     estimator: str = "final_gather"
     aovs: str = ""
