@@ -170,3 +170,19 @@ def test_final_gather_records_hold_caustics_only_at_unbounded_depth(max_depth, h
     index = integrator.prepared.index
     assert integrator.prepared.caustic_map.count > 0
     assert index.holds_caustics is holds
+
+
+@pytest.mark.parametrize("name,pays", [("indirect_room", True), ("exterior_envmap", False)])
+def test_guiding_is_used_where_bounced_light_matters(name, pays):
+    """Guiding's record lookups are spent where records owe much of their light to
+    bounces (a room lit through its ceiling), not under an open sky, where direct light
+    is nearly all of it; and every record of the room has a distribution to draw from."""
+    from pmic_integrator import scenes
+
+    scene = scenes.load_scene(name, resolution=16)
+    prepared = pipeline.prepare(scene, settings())
+    assert prepared.index.guiding_pays() is pays
+    guide = np.array(prepared.index.records.guide).reshape(prepared.index.records.count, -1)
+    assert np.all(np.diff(guide, axis=1) >= 0) and np.all(np.isin(guide[:, -1], [0.0, 1.0]))
+    if pays:
+        assert np.mean(guide[:, -1] == 1.0) > 0.95
