@@ -563,7 +563,7 @@ def guide_cdfs(owner: mi.UInt32, direction: mi.Vector3f, radiance: mi.Color3f, c
     records bit for bit; a parallel float scatter-add is not)."""
     import numpy as np
 
-    lum = np.array(0.2126 * radiance.x + 0.7152 * radiance.y + 0.0722 * radiance.z, dtype=np.float64)
+    lum = np.array(mi.luminance(radiance), dtype=np.float64)
     lum = np.where(np.isfinite(lum) & (lum > 0), lum, 0.0)
     slot = np.array(owner, dtype=np.int64) * GUIDE_BINS + np.array(guide_bin(direction), dtype=np.int64)
     hist = np.bincount(slot, weights=lum, minlength=count * GUIDE_BINS).reshape(count, GUIDE_BINS)
@@ -712,9 +712,8 @@ class RecordIndex:
         worth its lookups (:data:`GUIDE_MIN_RECORDS`)? A function of the cache only."""
         if not self.guides:
             return False
-        luminance = lambda c: 0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z  # noqa: E731
-        bounced = luminance(self.records.irradiance)
-        total = bounced if self.direct is None else bounced + luminance(self.direct)
+        bounced = mi.luminance(self.records.irradiance)
+        total = bounced if self.direct is None else bounced + mi.luminance(self.direct)
         share = dr.select(total > 0, bounced / dr.maximum(total, 1e-30), 0.0)
         fraction = dr.mean(mi.Float(dr.select(share >= GUIDE_BOUNCED_SHARE, 1.0, 0.0)))
         return float(fraction[0] if dr.width(fraction) else fraction) >= GUIDE_MIN_RECORDS
@@ -722,10 +721,10 @@ class RecordIndex:
     def guide_record(self, x: mi.Point3f, n: mi.Vector3f, active=True):
         """``(record, share)``: the first record in the grid cell of x that reaches
         (x, n) and gathered some light (its distribution guides the sampling at x;
-        stopping at the first, not the nearest, halves the cost of the walk), and the
-        share of bounced light in its irradiance (0 where no record was found). A
-        deterministic function of (x, n), so that the
-        guided density can be evaluated at any direction (MIS). No visibility test:
+        the walk stops at the first, not the nearest), and the share of bounced light
+        in its irradiance (0 where no record was found). A deterministic function of
+        (x, n), so that the guided density can be evaluated at any direction (MIS).
+        No visibility test:
         a record behind a thin wall only guides worse, never wrongly (the BSDF
         density stays in the mixture)."""
         r = self.records
@@ -752,11 +751,10 @@ class RecordIndex:
         # The share of bounced light in the record's irradiance: where direct light
         # is most of it (a sunlit ground), BSDF sampling also serves direct light
         # (MIS with the emitters) and keeps most of the rays.
-        luminance = lambda c: 0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z  # noqa: E731
-        bounced = luminance(dr.gather(mi.Color3f, r.irradiance, best, found))
+        bounced = mi.luminance(dr.gather(mi.Color3f, r.irradiance, best, found))
         total = bounced
         if self.direct is not None:
-            total = total + luminance(dr.gather(mi.Color3f, self.direct, best, found))
+            total = total + mi.luminance(dr.gather(mi.Color3f, self.direct, best, found))
         share = dr.select(found & (total > 0), dr.clip(bounced / dr.maximum(total, 1e-30), 0.0, 1.0), 0.0)
         return best, share
 

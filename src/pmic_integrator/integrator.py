@@ -37,16 +37,14 @@ TRUST_RECORD_RADII = 1.0
 MAX_TRACED_BOUNCES = 3
 #: Guiding (``guiding``): at a traced diffuse vertex that a record reaches, this
 #: fraction, times the share of bounced light in the record's irradiance, of the
-#: continuation rays is drawn from the record's directional distribution of
-#: gathered light, the rest by BSDF sampling, weighted by the
-#: mixture's density (one-sample MIS, unbiased whatever the distribution). Half and
-#: half keeps the BSDF's density at least 1/2 of its own everywhere (never worse than
-#: 2× its variance), while a bright, small source of bounced light (a lit lamp
-#: housing, a door to a lit room) is met up to ~50× as often as cosine sampling meets
-#: it: those were the fireflies of the final gather.
+#: continuation rays is drawn from the record's directional distribution of gathered
+#: light, the rest by BSDF sampling, weighted by the mixture's density (one-sample
+#: MIS, unbiased whatever the distribution). At most half: the BSDF's density stays at
+#: least 1/2 of its own everywhere (never worse than 2× its variance), while a bright
+#: source of bounced light (a lit ceiling, a door to a lit room) is met far more often
+#: than cosine sampling meets it. Scaled by the bounced share because where direct
+#: light is most of the irradiance, BSDF samples also serve it (MIS with the emitters).
 GUIDE_FRACTION = 0.5
-#: (Where direct light is most of the irradiance, BSDF samples also serve it: under a
-#: sky they keep nearly every ray.)
 #: The largest float32 below 1 (a sample in [0, 1) stays there after stretching).
 ONE_MINUS_EPSILON = 0.99999994
 
@@ -161,9 +159,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
        * - ``guiding``
          - boolean
          - true
-         - ``final_gather`` only: a traced diffuse vertex sends half its continuation
-           rays where the nearest record's gather found bounced light (a directional
-           histogram kept per record), half by BSDF sampling, weighted by the mixture's
+         - ``final_gather`` only: a traced diffuse vertex sends up to half its
+           continuation rays (half times the share of bounced light there) where a
+           record reaching it found bounced light (a directional histogram kept per
+           record), the rest by BSDF sampling, weighted by the mixture's
            density (unbiased). Cuts the noise from bright sources of bounced light
            (a lit ceiling, a door to a lit room); costs one record lookup per traced
            vertex, so it is skipped in scenes lit almost only directly (under 25 % of
@@ -591,11 +590,14 @@ class PMICIntegrator(mi.SamplingIntegrator):
             # ---- Continue through the other lobes (all lobes if inseparable or traced) ----
             whole = ~separable | traced_here
             u1, u2 = sampler.next_1d(), sampler.next_2d()
-            # Guided lanes: u1 < α picks the record's distribution; the rest of u1,
-            # stretched back to [0, 1), draws the BSDF sample (its lobe choice).
-            pick_guide = active_next & whole & (u1 < guide_fraction)
-            u1 = dr.select(guide_fraction > 0, dr.minimum((u1 - guide_fraction) / (1.0 - guide_fraction),
-                                                           ONE_MINUS_EPSILON), u1)
+            pick_guide = mi.Bool(False)
+            if dr.hint(guiding, mode="scalar"):
+                # Guided lanes: u1 < α picks the record's distribution; the rest of
+                # u1, stretched back to [0, 1), draws the BSDF sample (its lobe).
+                pick_guide = active_next & whole & (u1 < guide_fraction)
+                u1 = dr.select(guide_fraction > 0,
+                               dr.minimum((u1 - guide_fraction) / (1.0 - guide_fraction),
+                                          ONE_MINUS_EPSILON), u1)
             bs, bsdf_weight = bsdf.sample(ctx_rest, si, u1, u2, active_next & ~whole)
             bs_all, weight_all = bsdf.sample(ctx_all, si, u1, u2, active_next & whole & ~pick_guide)
             bs[whole] = bs_all
@@ -666,7 +668,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         """
         n_em = float(self.settings.direct_samples)
         index = self._view.index
-        guided = guide_fraction is not None and index is not None and index.guides
+        guided = guide_fraction is not None  # given only where the index guides
 
         def one_sample(sampler):
             ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active)
@@ -711,7 +713,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         index = self._view.index
         guided = active & (fraction > 0)
         wo_guide = index.sample_guide(record, u2, pick)
-        f_guide, pdf_bsdf_guide = bsdf.eval_pdf(mi.BSDFContext(), si, si.to_local(wo_guide), pick)
+        wo_guide_local = si.to_local(wo_guide)
+        f_guide, pdf_bsdf_guide = bsdf.eval_pdf(mi.BSDFContext(), si, wo_guide_local, pick)
         delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) & ~pick
         wo_world = dr.select(pick, wo_guide, si.to_world(bs.wo))
         pdf_bsdf = dr.select(pick, pdf_bsdf_guide, bs.pdf)
@@ -723,7 +726,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         weight = dr.select(pick, mi.Spectrum(f_guide) / safe, weight)
         weight = dr.select(mixed & ~(pdf_mix > 0), 0.0, weight)
         bs.pdf = dr.select(mixed, pdf_mix, bs.pdf)
-        bs.wo = dr.select(pick, si.to_local(wo_guide), bs.wo)
+        bs.wo = dr.select(pick, wo_guide_local, bs.wo)
         bs.eta = dr.select(pick, 1.0, bs.eta)
         bs.sampled_type = dr.select(pick, mi.UInt32(+mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
         bs.sampled_component = dr.select(pick, mi.UInt32(0), bs.sampled_component)
