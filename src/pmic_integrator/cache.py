@@ -23,10 +23,12 @@ import drjit as dr
 import mitsuba as mi
 
 from . import streams
+from .emission import sample_emitter_direction
 from .gather import GatherSource, stratified_directions, trace_gather_rays
 from ._jit import (concat, opaque_float, opaque_u32, rng as make_rng, segment_blocked,
                    shading_normal_on_side, surface_offset)
 from .hashgrid import BallGrid, PointGrid
+from .lights import RecordLights
 
 # --- Internal tuning constants -------------------------------------------------------
 #: Pilot gather for a candidate's radius: 4 × 4 strata give a harmonic mean distance
@@ -590,8 +592,8 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
     ref.p = p + n * surface_offset(p, offset)
     ref.n = n
     rng = make_rng(lanes, seed, stream=streams.RECORD_DIRECT)
-    ds, weight = scene.sample_emitter_direction(ref, mi.Point2f(rng.next_float32(), rng.next_float32()),
-                                                True)
+    ds, weight = sample_emitter_direction(scene, ref, mi.Point2f(rng.next_float32(), rng.next_float32()),
+                                          True)
     e = weight * dr.maximum(dr.dot(ds.d, cos_n), 0.0)
     e = dr.select((ds.pdf > 0) & dr.all(dr.isfinite(e)), e, 0.0)
     return mi.Color3f(block_sum(mi.Color3f(e), samples)) / samples
@@ -618,6 +620,9 @@ class RecordIndex:
     #: ``direct`` holds the caustic map's irradiance at each record too (light that
     #: reached the record through delta/glossy bounces): readers need no caustic lookup.
     holds_caustics: bool = False
+    #: The brightest records as disk lights (final gather: continuation rays are drawn
+    #: towards them, :mod:`pmic_integrator.lights`); None: no record stands out.
+    lights: RecordLights | None = None
 
     @staticmethod
     def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0,
@@ -642,6 +647,7 @@ class RecordIndex:
         index = RecordIndex.build(self.records, self.max_error, self.scene, self.lift)
         index.direct = self.direct
         index.holds_caustics = self.holds_caustics
+        index.lights = self.lights
         return index
 
     def _require_lookup(self):

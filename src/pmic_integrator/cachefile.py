@@ -30,7 +30,8 @@ FORMAT = "pmic-cache"
 #: 4: records hold their shading normals; photon powers carry the shading-normal factor.
 #: 5: final-gather records may hold the caustic map's irradiance (holds_caustics).
 #: 6: records hold their directional distribution of gathered light (guiding).
-VERSION = 6
+#: 7: final-gather caches keep their brightest records as lights (RecordLights).
+VERSION = 7
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
@@ -43,13 +44,15 @@ class CacheFileError(ValueError):
 
 def _classes():
     from .cache import CacheRecords, RecordIndex
+    from .lights import RecordLights
     from .gather import GatherSource
     from .hashgrid import BallGrid, PointGrid, PointGridPyramid
     from .pipeline import PreparedScene, SceneInfo
     from .photons import PhotonMap
 
     return {c.__name__: c for c in (CacheRecords, RecordIndex, GatherSource, BallGrid, PointGrid,
-                                    PointGridPyramid, PreparedScene, SceneInfo, PhotonMap)}
+                                    PointGridPyramid, PreparedScene, SceneInfo, PhotonMap,
+                                    RecordLights)}
 
 
 def _flatten(obj, name: str, arrays: dict):

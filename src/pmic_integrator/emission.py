@@ -25,7 +25,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["sample_emitter_rays", "emission_sphere", "scene_bbox"]
+__all__ = ["sample_emitter_rays", "sample_emitter_direction", "choose_emitter", "emitter_order",
+           "emission_sphere", "scene_bbox"]
 
 
 def scene_bbox(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
@@ -77,6 +78,67 @@ def emission_sphere(scene: mi.Scene) -> tuple[mi.ScalarPoint3f, float]:
     return center, radius
 
 
+def emitter_order(scene: mi.Scene) -> list[int]:
+    """Indices into ``scene.emitters()`` sorted by what each emitter is (id, kind,
+    parameters, the shape of an area light), not by the order Mitsuba loaded them in:
+    that order changes from one process to the next (seen: the lamp room's two lamps
+    swapped in a quarter of the loads), and with it which light a random number picks."""
+    def key(i):
+        emitter = scene.emitters()[i]
+        shape = emitter.get_shape()
+        geometry = () if shape is None else (tuple(shape.bbox().min), tuple(shape.bbox().max),
+                                             shape.primitive_count())
+        return (emitter.id(), emitter.class_name(), str(emitter), geometry)
+    return sorted(range(len(scene.emitters())), key=key)
+
+
+def choose_emitter(scene: mi.Scene, sample, active=True):
+    """``scene.sample_emitter`` over the emitters in :func:`emitter_order`: Mitsuba's
+    rule (uniform, or by ``sampling_weight``). Returns ``(index into
+    scene.emitters(), 1/pmf, the sample reused)``. With one emitter, ``sample`` is
+    returned as it is (as Mitsuba does)."""
+    sample = mi.Float(sample)
+    active = mi.Bool(active)
+    order = emitter_order(scene)
+    count = len(order)
+    if count == 1:
+        return dr.zeros(mi.UInt32, dr.width(sample)), dr.ones(mi.Float, dr.width(sample)), sample
+    weights = [float(scene.emitters()[i].sampling_weight()) for i in order]
+    if min(weights) == max(weights) or sum(weights) <= 0:
+        scaled = sample * float(count)
+        pick = dr.minimum(mi.UInt32(scaled), count - 1)
+        weight, sample = dr.full(mi.Float, float(count), dr.width(sample)), scaled - mi.Float(pick)
+    else:
+        pick, sample, pmf = mi.DiscreteDistribution(weights).sample_reuse_pmf(sample, active)
+        weight = dr.rcp(pmf)
+    return dr.gather(mi.UInt32, mi.UInt32(order), pick), weight, sample
+
+
+def sample_emitter_direction(scene: mi.Scene, ref, sample: mi.Point2f, test_visibility: bool,
+                             active=True):
+    """``scene.sample_emitter_direction`` with the emitter chosen by
+    :func:`choose_emitter` (what Mitsuba's does, step for step: the emitter's own
+    ``sample_direction``, its pmf folded into the density and the weight, a shadow ray
+    to the sampled point), so that the same seed gives the same samples whatever order
+    Mitsuba loaded the lights in. ``scene.pdf_emitter_direction`` stays its density."""
+    active = mi.Bool(active)
+    lanes = dr.width(ref.p)
+    if not scene.emitters():
+        return dr.zeros(mi.DirectionSample3f, lanes), dr.zeros(mi.Spectrum, lanes)
+    sample = mi.Point2f(sample)
+    index, weight, sample.x = choose_emitter(scene, sample.x, active)
+    emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, active)
+    ds, spectrum = emitter.sample_direction(ref, sample, active)
+    if len(scene.emitters()) > 1:
+        ds.pdf *= dr.rcp(weight)
+        spectrum *= weight
+    active &= ds.pdf != 0.0
+    if test_visibility:
+        blocked = scene.ray_test(ref.spawn_ray_to(ds.p), active)
+        spectrum = dr.select(blocked, 0.0, spectrum)
+    return ds, spectrum
+
+
 def _finite(weight) -> mi.Bool:
     """Lanes whose every spectral channel is finite (not NaN, not +-inf)."""
     ok = mi.Bool(True)
@@ -95,7 +157,7 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
 
     Returns ``(ray, weight, emitter)``: ``weight`` is the flux carried by the sample
     (emitted radiance over the spatio-directional density, including ``1/pmf`` of the
-    emitter choice, which is Mitsuba's own ``scene.sample_emitter``). Lanes that are
+    emitter choice, :func:`choose_emitter`). Lanes that are
     inactive, that pick no valid sample, or whose weight is not finite (NaN, inf) get
     weight 0 and a finite ray with ``maxt = 0`` that hits nothing.
 
@@ -113,8 +175,9 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
         ray = dr.zeros(mi.Ray3f, n)
         return ray, dr.zeros(mi.Spectrum, n), dr.zeros(mi.EmitterPtr, n)
 
-    # Emitter choice: exactly Mitsuba's (uniform, or by `sampling_weight`), with 1/pmf.
-    index, selection_weight, sample1 = scene.sample_emitter(mi.Float(sample1), active)
+    # Emitter choice by Mitsuba's rule (uniform, or by `sampling_weight`), with 1/pmf,
+    # over the emitters in a fixed order (see emitter_order).
+    index, selection_weight, sample1 = choose_emitter(scene, sample1, active)
     emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, active)
     infinite = active & mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite)
     finite_kind = active & ~infinite

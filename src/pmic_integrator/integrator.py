@@ -15,6 +15,7 @@ from mitsuba.ad.integrators.common import mis_weight
 from . import cachefile, pipeline, streams
 from ._jit import shading_normal_on_side, surface_offset
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
+from .emission import sample_emitter_direction
 from .gather import trace_gather_rays
 from .irradiance import estimate_irradiance
 from .pipeline import PreparedScene, SceneInfo, scene_fingerprint  # noqa: F401 (re-exported)
@@ -45,6 +46,12 @@ MAX_TRACED_BOUNCES = 3
 #: than cosine sampling meets it. Scaled by the bounced share because where direct
 #: light is most of the irradiance, BSDF samples also serve it (MIS with the emitters).
 GUIDE_FRACTION = 0.5
+#: ...and where bright records (:mod:`pmic_integrator.lights`: a lamp's shade lit from
+#: inside) face the traced vertex, this fraction of its continuation rays is drawn
+#: towards them, the rest as above, all weighted by the three-way mixture's density.
+#: Half: such a source sends most of the bounced light there, and the BSDF and guide
+#: strategies keep at least half of their own density (at most 2× their variance).
+LIGHT_FRACTION = 0.25
 #: The largest float32 below 1 (a sample in [0, 1) stays there after stretching).
 ONE_MINUS_EPSILON = 0.99999994
 
@@ -166,7 +173,11 @@ class PMICIntegrator(mi.SamplingIntegrator):
            density (unbiased). Cuts the noise from bright sources of bounced light
            (a lit ceiling, a door to a lit room); costs one record lookup per traced
            vertex, so it is skipped in scenes lit almost only directly (under 25 % of
-           the records owe a quarter of their light to bounces).
+           the records owe a quarter of their light to bounces). Where a few records
+           are far brighter than the rest and hold much of the cache's power (the
+           inside of a lampshade), a quarter of the rays is also drawn towards them
+           (groups of them as spherical lights, ``pmic_integrator.lights``), which
+           removes the fireflies that cosine sampling of such small sources gives.
        * - ``max_photon_paths``
          - integer
          - 0 (auto)
@@ -447,6 +458,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         diffuse_mis = prepared.info.has_infinite_emitter
         guiding = gather_first and self.settings.guiding and prepared.index is not None and \
             prepared.index.guiding_pays()
+        lit = gather_first and self.settings.guiding and prepared.index is not None and \
+            prepared.index.lights is not None
         n_em = float(self.settings.direct_samples)
         aovs = self.settings.aov_list
         want_direct, want_indirect = "direct" in aovs, "indirect" in aovs
@@ -537,6 +550,12 @@ class PMICIntegrator(mi.SamplingIntegrator):
             if dr.hint(guiding, mode="scalar"):
                 guide_record, bounced_share = self._view.index.guide_record(si.p, n, traced_here & active_next)
                 guide_fraction = GUIDE_FRACTION * bounced_share
+            # ...and part towards the bright records that face it.
+            light_total = mi.Float(0.0)
+            light_fraction = mi.Float(0.0)
+            if dr.hint(lit, mode="scalar"):
+                light_total = self._view.index.lights.total_weight(si.p, n, traced_here & active_next)
+                light_fraction = dr.select(light_total > 0, LIGHT_FRACTION, 0.0)
 
             # Final gather: a trusted vertex reads all of its light from the cache (the
             # records hold direct light too; where none reaches, the precomputed
@@ -590,22 +609,36 @@ class PMICIntegrator(mi.SamplingIntegrator):
             # ---- Continue through the other lobes (all lobes if inseparable or traced) ----
             whole = ~separable | traced_here
             u1, u2 = sampler.next_1d(), sampler.next_2d()
+            pick_light = mi.Bool(False)
+            u_light = mi.Float(0.0)
+            if dr.hint(lit, mode="scalar"):
+                # Lanes drawn towards a bright record: u1 < α_light; u1 / α_light then
+                # picks the record, and the rest of u1, stretched back to [0, 1), serves
+                # the strategies below.
+                pick_light = active_next & whole & (u1 < light_fraction)
+                u_light = dr.minimum(u1 / LIGHT_FRACTION, ONE_MINUS_EPSILON)
+                u1 = dr.select(light_fraction > 0,
+                               dr.clip((u1 - light_fraction) / (1.0 - light_fraction),
+                                       0.0, ONE_MINUS_EPSILON), u1)
             pick_guide = mi.Bool(False)
             if dr.hint(guiding, mode="scalar"):
                 # Guided lanes: u1 < α picks the record's distribution; the rest of
                 # u1, stretched back to [0, 1), draws the BSDF sample (its lobe).
-                pick_guide = active_next & whole & (u1 < guide_fraction)
+                pick_guide = active_next & whole & (u1 < guide_fraction) & ~pick_light
                 u1 = dr.select(guide_fraction > 0,
-                               dr.minimum((u1 - guide_fraction) / (1.0 - guide_fraction),
-                                          ONE_MINUS_EPSILON), u1)
+                               dr.clip((u1 - guide_fraction) / (1.0 - guide_fraction),
+                                       0.0, ONE_MINUS_EPSILON), u1)
             bs, bsdf_weight = bsdf.sample(ctx_rest, si, u1, u2, active_next & ~whole)
-            bs_all, weight_all = bsdf.sample(ctx_all, si, u1, u2, active_next & whole & ~pick_guide)
+            bs_all, weight_all = bsdf.sample(ctx_all, si, u1, u2,
+                                             active_next & whole & ~pick_guide & ~pick_light)
             bs[whole] = bs_all
             bsdf_weight[whole] = weight_all
-            if dr.hint(guiding, mode="scalar"):
-                bs, bsdf_weight = self._guided_continuation(si, bsdf, bs, bsdf_weight, pick_guide, u2,
-                                                            guide_record, guide_fraction,
-                                                            active_next & whole)
+            mis_pdf = mi.Float(bs.pdf)
+            if dr.hint(guiding | lit, mode="scalar"):
+                bs, bsdf_weight, mis_pdf = self._mixed_continuation(
+                    si, n, bsdf, bs, bsdf_weight, u2, active_next & whole,
+                    pick_guide, guide_record, guide_fraction if guiding else None,
+                    pick_light, u_light, light_total, light_fraction if lit else None)
             sampled_diffuse = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
             # A traced vertex sampling its diffuse lobe starts a new chain; an
             # inseparable one (no caustic photon is stored behind it) ends the old one;
@@ -618,7 +651,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             β *= bsdf_weight
             η *= bs.eta
             prev_si = dr.detach(si, True)
-            prev_bsdf_pdf = bs.pdf
+            prev_bsdf_pdf = mis_pdf
             prev_bsdf_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             ray = si.spawn_ray(si.to_world(bs.wo))
 
@@ -663,15 +696,16 @@ class PMICIntegrator(mi.SamplingIntegrator):
         traced vertices (whose continuation samples the whole BSDF). Where ``armed``,
         light through the delta/glossy lobes is left out (a caustic the map holds);
         where ``no_diffuse``, the diffuse lobe is (the cache holds its direct light).
-        Where ``guide_fraction`` > 0 the continuation's density is the guided mixture
-        (:meth:`_guided_continuation`), and the MIS weights use it.
+        Where ``guide_fraction`` > 0 the MIS weights use the continuation's guided
+        mixture density (:meth:`_mixed_continuation`: without its bright-record
+        strategy, as the continuation's own emitter hits do).
         """
         n_em = float(self.settings.direct_samples)
         index = self._view.index
         guided = guide_fraction is not None  # given only where the index guides
 
         def one_sample(sampler):
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active)
+            ds, em_weight = sample_emitter_direction(scene, si, sampler.next_2d(), True, active)
             ok = active & (ds.pdf != 0.0)
             wo = si.to_local(ds.d)
             f_diffuse, pdf_diffuse = bsdf.eval_pdf(ctx_diffuse, si, wo, ok & separable)
@@ -704,33 +738,62 @@ class PMICIntegrator(mi.SamplingIntegrator):
             label="pmic_direct_light")
         return total / n_em
 
-    def _guided_continuation(self, si, bsdf, bs, weight, pick, u2, record, fraction, active):
-        """One-sample MIS of BSDF sampling and the record's distribution at lanes with
-        ``fraction`` > 0: where ``pick`` (probability ``fraction``) the direction comes
-        from the record (:meth:`RecordIndex.sample_guide`, drawn with ``u2``), else
-        ``bs`` stands; either way the weight is f·cos / ((1-α) p_bsdf + α p_guide).
-        A delta lobe's sample keeps its weight over 1-α (no density to mix)."""
+    def _mixed_continuation(self, si, n, bsdf, bs, weight, u2, active,
+                            pick_guide, guide_record, guide_fraction,
+                            pick_light, u_light, light_total, light_fraction):
+        """One-sample MIS of up to three strategies for a traced vertex's continuation:
+        towards a bright record (:meth:`RecordLights.sample`, where ``pick_light``,
+        probability α_l = ``light_fraction``), from the guide record's distribution
+        (:meth:`RecordIndex.sample_guide`, where ``pick_guide``, probability
+        (1-α_l)·α_g), else the BSDF sample ``bs``. Either way the weight is
+        f·cos / p_mix with p_mix = α_l p_light + (1-α_l)((1-α_g) p_bsdf + α_g p_guide)
+        (``None`` fractions: that strategy is not used in this scene). A delta lobe's
+        sample keeps its weight over (1-α_l)(1-α_g) (no density to mix).
+
+        Also returns the density that emitter hits are MIS-weighted with: the mixture
+        without the bright-record strategy. MIS weights need only sum to one over the
+        strategies (emitter sampling and this continuation), which they do when both
+        use the same density, so the emitter samples need not evaluate the lights'
+        density (a loop over the lights per sample): unbiased either way."""
         index = self._view.index
-        guided = active & (fraction > 0)
-        wo_guide = index.sample_guide(record, u2, pick)
-        wo_guide_local = si.to_local(wo_guide)
-        f_guide, pdf_bsdf_guide = bsdf.eval_pdf(mi.BSDFContext(), si, wo_guide_local, pick)
-        delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) & ~pick
-        wo_world = dr.select(pick, wo_guide, si.to_world(bs.wo))
-        pdf_bsdf = dr.select(pick, pdf_bsdf_guide, bs.pdf)
-        mixed = guided & ~delta
-        pdf_mix = (1.0 - fraction) * pdf_bsdf + fraction * index.guide_pdf(record, wo_world, mixed)
+        guided, lit = guide_fraction is not None, light_fraction is not None
+        alpha_g = guide_fraction if guided else mi.Float(0.0)
+        alpha_l = light_fraction if lit else mi.Float(0.0)
+        mixing = active & ((alpha_g > 0) | (alpha_l > 0))
+        picked = mi.Bool(False)
+        wo_picked = mi.Vector3f(0.0, 0.0, 1.0)
+        if guided:
+            picked |= pick_guide
+            wo_picked = dr.select(pick_guide, index.sample_guide(guide_record, u2, pick_guide), wo_picked)
+        if lit:
+            picked |= pick_light
+            wo_picked = dr.select(pick_light, index.lights.sample(si.p, n, light_total, u_light, u2,
+                                                                  pick_light), wo_picked)
+        wo_picked_local = si.to_local(wo_picked)
+        f_picked, pdf_bsdf_picked = bsdf.eval_pdf(mi.BSDFContext(), si, wo_picked_local, picked)
+        delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) & ~picked
+        wo_world = dr.select(picked, wo_picked, si.to_world(bs.wo))
+        pdf_bsdf = dr.select(picked, pdf_bsdf_picked, bs.pdf)
+        mixed = mixing & ~delta
+        pdf_mix = pdf_bsdf
+        if guided:
+            pdf_mix = (1.0 - alpha_g) * pdf_mix + alpha_g * index.guide_pdf(
+                guide_record, wo_world, mixed & (alpha_g > 0))
+        pdf_mis = dr.select(mixed, pdf_mix, bs.pdf)
+        if lit:
+            pdf_mix = (1.0 - alpha_l) * pdf_mix + alpha_l * index.lights.pdf(
+                si.p, n, light_total, wo_world, mixed & (alpha_l > 0))
         safe = dr.maximum(pdf_mix, 1e-30)
-        weight = dr.select(mixed & ~pick, weight * (bs.pdf / safe), weight)
-        weight = dr.select(guided & delta, weight / (1.0 - fraction), weight)
-        weight = dr.select(pick, mi.Spectrum(f_guide) / safe, weight)
+        weight = dr.select(mixed & ~picked, weight * (bs.pdf / safe), weight)
+        weight = dr.select(mixing & delta, weight / ((1.0 - alpha_g) * (1.0 - alpha_l)), weight)
+        weight = dr.select(picked, mi.Spectrum(f_picked) / safe, weight)
         weight = dr.select(mixed & ~(pdf_mix > 0), 0.0, weight)
         bs.pdf = dr.select(mixed, pdf_mix, bs.pdf)
-        bs.wo = dr.select(pick, wo_guide_local, bs.wo)
-        bs.eta = dr.select(pick, 1.0, bs.eta)
-        bs.sampled_type = dr.select(pick, mi.UInt32(+mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
-        bs.sampled_component = dr.select(pick, mi.UInt32(0), bs.sampled_component)
-        return bs, weight
+        bs.wo = dr.select(picked, wo_picked_local, bs.wo)
+        bs.eta = dr.select(picked, 1.0, bs.eta)
+        bs.sampled_type = dr.select(picked, mi.UInt32(+mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
+        bs.sampled_component = dr.select(picked, mi.UInt32(0), bs.sampled_component)
+        return bs, weight, pdf_mis
 
     def _diffuse_emitter_hit(self, scene, sampler, si, bsdf, active, ctx_diffuse, n_em):
         """Direct light on the diffuse lobe from one BSDF-sampled ray that meets an

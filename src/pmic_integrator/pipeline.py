@@ -34,6 +34,7 @@ from .bsdfs import non_diffuse_context
 from .cache import CacheRecords, RecordIndex
 from .gather import VISIBILITY_LIFT, GatherSource
 from .hashgrid import BallGrid, PointGridPyramid
+from .lights import RecordLights
 from .irradiance import (adapted_lookup_radius, estimate_irradiance, lookup_radius,
                          precompute_irradiance, sort_into_grid)
 from .photons import CAUSTIC, GLOBAL, PhotonMap, trace_photons
@@ -424,6 +425,11 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
                 index.records.normal, prepared.caustic_radius)
             index.holds_caustics = True
         dr.eval(index.direct)
+        # Records far brighter than the rest (a lamp's shade lit from inside) become
+        # disk lights that continuation rays are drawn towards.
+        index.lights = RecordLights.select(index.records.position, index.records.normal,
+                                           index.records.radius * index.max_error,
+                                           index.records.irradiance + index.direct)
     stats["records"] = index.records.count
     progress.done("cache", f"{index.records.count} records")
     return index, stats
