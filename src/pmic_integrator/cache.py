@@ -367,7 +367,8 @@ def _gather_rays(scene, source, p, n, strata, seed, offset, about=None):
     ``n``); return per-ray data in [point][j][k] order."""
     ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, streams.RECORD_GATHER, offset,
                                                     about)
-    radiance, distance = trace_gather_rays(scene, source, ray, rng, mi.Bool(True))
+    radiance, distance = trace_gather_rays(scene, source, ray, rng, mi.Bool(True),
+                                           sample_delta=source.photons.irradiance_nodelta is not None)
     dr.eval(radiance, distance)
     return owner, j, k, local, radiance, distance
 
@@ -577,11 +578,14 @@ def guide_cdfs(owner: mi.UInt32, direction: mi.Vector3f, radiance: mi.Color3f, c
 
 
 def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f, samples: int,
-                      seed: int, offset: float, shading_normal: mi.Vector3f = None) -> mi.Color3f:
+                      seed: int, offset: float, shading_normal: mi.Vector3f = None,
+                      split: bool = False):
     """Irradiance straight from the emitters at each (position, normal): the mean of
     ``samples`` emitter samples with shadow rays (Mitsuba's emitter importance
     sampling), each non-finite sample counted as 0. The cosine is to
-    ``shading_normal`` where given (as Mitsuba's BSDFs weigh light)."""
+    ``shading_normal`` where given (as Mitsuba's BSDFs weigh light). With ``split``,
+    ``(from lights that are not delta, from delta lights)``: the same samples, each
+    counted in the part of the light it came from."""
     count = dr.width(position)
     lanes = count * samples
     owner = dr.arange(mi.UInt32, lanes) // opaque_u32(samples)
@@ -596,7 +600,12 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
                                           True)
     e = weight * dr.maximum(dr.dot(ds.d, cos_n), 0.0)
     e = dr.select((ds.pdf > 0) & dr.all(dr.isfinite(e)), e, 0.0)
-    return mi.Color3f(block_sum(mi.Color3f(e), samples)) / samples
+    if not split:
+        return mi.Color3f(block_sum(mi.Color3f(e), samples)) / samples
+    soft = dr.select(ds.delta, 0.0, e)
+    delta = dr.select(ds.delta, e, 0.0)
+    return (mi.Color3f(block_sum(mi.Color3f(soft), samples)) / samples,
+            mi.Color3f(block_sum(mi.Color3f(delta), samples)) / samples)
 
 
 # --------------------------------------------------------------------------------------
@@ -614,12 +623,17 @@ class RecordIndex:
     backup_grid: BallGrid | None
     scene: object = None  #: for visibility tests of records reaching past a surface
     lift: float = 0.0  #: how far those tests start off the surfaces
-    #: Direct irradiance at each record (final gather: the gather hit reflects all of
-    #: its light), added to the indirect irradiance when interpolating; None: not kept.
+    #: What interpolation adds to the gathered light (final gather: a gather hit reflects
+    #: all of its light): direct irradiance from the lights that are not delta (area
+    #: lights, environments); the camera path samples delta lights itself, whose sharp
+    #: shadows records would smear. None: not kept.
     direct: mi.Color3f = None
     #: ``direct`` holds the caustic map's irradiance at each record too (light that
     #: reached the record through delta/glossy bounces): readers need no caustic lookup.
     holds_caustics: bool = False
+    #: All direct irradiance at each record (delta lights too), for the share of
+    #: bounced light in a record's light (guiding) and for the lights; not interpolated.
+    direct_all: mi.Color3f = None
     #: The brightest records as disk lights (final gather: continuation rays are drawn
     #: towards them, :mod:`pmic_integrator.lights`); None: no record stands out.
     lights: RecordLights | None = None
@@ -646,6 +660,7 @@ class RecordIndex:
             return self
         index = RecordIndex.build(self.records, self.max_error, self.scene, self.lift)
         index.direct = self.direct
+        index.direct_all = self.direct_all
         index.holds_caustics = self.holds_caustics
         index.lights = self.lights
         return index
@@ -709,6 +724,11 @@ class RecordIndex:
                                   active=active, label=label)
 
     @property
+    def light_direct(self) -> mi.Color3f:
+        """All direct irradiance at each record (``direct_all``, else ``direct``)."""
+        return self.direct if self.direct_all is None else self.direct_all
+
+    @property
     def guides(self) -> bool:
         """The records carry directional distributions (:meth:`guide_record`)."""
         return self.records.guide is not None and self.records.count > 0
@@ -719,7 +739,8 @@ class RecordIndex:
         if not self.guides:
             return False
         bounced = mi.luminance(self.records.irradiance)
-        total = bounced if self.direct is None else bounced + mi.luminance(self.direct)
+        direct = self.light_direct
+        total = bounced if direct is None else bounced + mi.luminance(direct)
         share = dr.select(total > 0, bounced / dr.maximum(total, 1e-30), 0.0)
         fraction = dr.mean(mi.Float(dr.select(share >= GUIDE_BOUNCED_SHARE, 1.0, 0.0)))
         return float(fraction[0] if dr.width(fraction) else fraction) >= GUIDE_MIN_RECORDS
@@ -759,8 +780,9 @@ class RecordIndex:
         # (MIS with the emitters) and keeps most of the rays.
         bounced = mi.luminance(dr.gather(mi.Color3f, r.irradiance, best, found))
         total = bounced
-        if self.direct is not None:
-            total = total + mi.luminance(dr.gather(mi.Color3f, self.direct, best, found))
+        direct = self.light_direct
+        if direct is not None:
+            total = total + mi.luminance(dr.gather(mi.Color3f, direct, best, found))
         share = dr.select(found & (total > 0), dr.clip(bounced / dr.maximum(total, 1e-30), 0.0, 1.0), 0.0)
         return best, share
 

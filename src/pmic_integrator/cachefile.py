@@ -31,7 +31,10 @@ FORMAT = "pmic-cache"
 #: 5: final-gather records may hold the caustic map's irradiance (holds_caustics).
 #: 6: records hold their directional distribution of gathered light (guiding).
 #: 7: final-gather caches keep their brightest records as lights (RecordLights).
-VERSION = 7
+#: 8: photons know whether their path began at a delta light, precomputed photons
+#:    keep their irradiance without delta lights' direct light apart, and final-gather
+#:    records hold direct light from lights that are not delta only.
+VERSION = 8
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

@@ -92,15 +92,26 @@ def emitter_order(scene: mi.Scene) -> list[int]:
     return sorted(range(len(scene.emitters())), key=key)
 
 
-def choose_emitter(scene: mi.Scene, sample, active=True):
+def is_delta(emitter) -> bool:
+    """A point, spot or directional light (a delta in position or direction): its
+    shadows are sharp, and one sample of it is exact up to visibility."""
+    return mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
+
+
+def choose_emitter(scene: mi.Scene, sample, active=True, delta: bool = False):
     """``scene.sample_emitter`` over the emitters in :func:`emitter_order`: Mitsuba's
-    rule (uniform, or by ``sampling_weight``). Returns ``(index into
+    rule (uniform, or by ``sampling_weight``); with ``delta``, over the delta lights
+    only (:func:`is_delta`; there must be one). Returns ``(index into
     scene.emitters(), 1/pmf, the sample reused)``. With one emitter, ``sample`` is
     returned as it is (as Mitsuba does)."""
     sample = mi.Float(sample)
     active = mi.Bool(active)
     order = emitter_order(scene)
+    if delta:
+        order = [i for i in order if is_delta(scene.emitters()[i])]
     count = len(order)
+    if count == 1 and delta:
+        return dr.full(mi.UInt32, order[0], dr.width(sample)), dr.ones(mi.Float, dr.width(sample)), sample
     if count == 1:
         return dr.zeros(mi.UInt32, dr.width(sample)), dr.ones(mi.Float, dr.width(sample)), sample
     weights = [float(scene.emitters()[i].sampling_weight()) for i in order]
@@ -115,18 +126,19 @@ def choose_emitter(scene: mi.Scene, sample, active=True):
 
 
 def sample_emitter_direction(scene: mi.Scene, ref, sample: mi.Point2f, test_visibility: bool,
-                             active=True):
+                             active=True, delta: bool = False):
     """``scene.sample_emitter_direction`` with the emitter chosen by
     :func:`choose_emitter` (what Mitsuba's does, step for step: the emitter's own
     ``sample_direction``, its pmf folded into the density and the weight, a shadow ray
     to the sampled point), so that the same seed gives the same samples whatever order
-    Mitsuba loaded the lights in. ``scene.pdf_emitter_direction`` stays its density."""
+    Mitsuba loaded the lights in. ``scene.pdf_emitter_direction`` stays its density.
+    With ``delta``, only the delta lights are sampled (the scene must have one)."""
     active = mi.Bool(active)
     lanes = dr.width(ref.p)
     if not scene.emitters():
         return dr.zeros(mi.DirectionSample3f, lanes), dr.zeros(mi.Spectrum, lanes)
     sample = mi.Point2f(sample)
-    index, weight, sample.x = choose_emitter(scene, sample.x, active)
+    index, weight, sample.x = choose_emitter(scene, sample.x, active, delta)
     emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, active)
     ds, spectrum = emitter.sample_direction(ref, sample, active)
     if len(scene.emitters()) > 1:

@@ -16,7 +16,8 @@ import drjit as dr
 import mitsuba as mi
 
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context  # noqa: F401
-from ._jit import opaque_float, segment_blocked
+from ._jit import opaque_float, segment_blocked, shading_normal_on_side
+from .emission import sample_emitter_direction
 from .hashgrid import PointGrid
 from .irradiance import nearest_photon
 from .photons import PhotonMap
@@ -133,9 +134,10 @@ class GatherSource:
         return steps
 
     def irradiance_at(self, scene: mi.Scene, si: mi.SurfaceInteraction3f, n: mi.Vector3f,
-                      active) -> mi.Color3f:
+                      active, without_delta: bool = False) -> mi.Color3f:
         """Precomputed irradiance of the nearest photon on the surface at ``si`` that
-        ``si`` can see (0 where there is none)."""
+        ``si`` can see (0 where there is none); with ``without_delta``, without the
+        direct light of delta lights (the caller samples them itself)."""
         if self.photons.count == 0:
             return dr.zeros(mi.Color3f, dr.width(si.p))
         active = mi.Bool(active)
@@ -146,7 +148,8 @@ class GatherSource:
             retry = active & ~found
             index, hit = nearest_photon(photons, grid, si.p, n, reach, retry, octant=octant)
             hit &= retry
-            result = dr.select(hit, dr.gather(mi.Color3f, photons.irradiance, index, hit), result)
+            values = photons.irradiance_nodelta if without_delta else photons.irradiance
+            result = dr.select(hit, dr.gather(mi.Color3f, values, index, hit), result)
             position = dr.select(hit, dr.gather(mi.Point3f, photons.position, index, hit), position)
             found |= hit
         # The nearest photon may lie across a thin wall (same plane, same normal): the
@@ -159,11 +162,16 @@ class GatherSource:
 
 @dr.syntax
 def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
-                      rng: mi.PCG32, active: mi.Bool):
+                      rng: mi.PCG32, active: mi.Bool, sample_delta: bool = False):
     """Radiance arriving along ``ray`` from the first diffuse surface it meets (through
     delta/glossy bounces), and the first hit distance. Emission met directly is not
     counted (the renderer samples direct light itself); emission met after a delta or
     glossy bounce is counted only when ``source.caustics_by_gathering``.
+
+    With ``sample_delta``, the direct light of delta lights (a sun, a spot) at a diffuse
+    hit comes from one sample of them (a shadow ray: exact up to visibility), and the
+    photons give the rest: the photons' estimate of a sunlit patch blurs its sharp
+    edge over a lookup radius and shares one error over the whole patch.
 
     Returns ``(radiance, distance)``; ``distance`` is +inf for rays that leave the scene.
     """
@@ -194,7 +202,14 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
         response = diffuse_response(bsdf, si, diffuse)
         # No lookup where nothing is reflected (the back of a one-sided surface, a
         # black texel): the searches there are the slowest (no photon is near).
-        irradiance = source.irradiance_at(scene, si, n, diffuse & (dr.max(response) > 0))
+        lit = diffuse & (dr.max(response) > 0)
+        irradiance = source.irradiance_at(scene, si, n, lit, without_delta=sample_delta)
+        if dr.hint(sample_delta, mode="scalar"):
+            u = mi.Point2f(rng.next_float32(), rng.next_float32())
+            ds, em_weight = sample_emitter_direction(scene, si, u, True, lit, delta=True)
+            cos_n = dr.maximum(dr.dot(ds.d, shading_normal_on_side(si, n)), 0.0)
+            direct = mi.Color3f(em_weight) * cos_n
+            irradiance += dr.select(lit & (ds.pdf > 0) & dr.all(dr.isfinite(direct)), direct, 0.0)
         reflected = throughput * response * irradiance
         radiance += dr.select(diffuse & dr.all(dr.isfinite(reflected)), reflected, 0.0)
         rest = active & (mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy))

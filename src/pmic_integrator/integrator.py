@@ -15,7 +15,7 @@ from mitsuba.ad.integrators.common import mis_weight
 from . import cachefile, pipeline, streams
 from ._jit import shading_normal_on_side, surface_offset
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
-from .emission import sample_emitter_direction
+from .emission import is_delta, sample_emitter_direction
 from .gather import trace_gather_rays
 from .irradiance import estimate_irradiance
 from .pipeline import PreparedScene, SceneInfo, scene_fingerprint  # noqa: F401 (re-exported)
@@ -409,7 +409,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
         source = self._view.gather_source
         if source is None:
             return dr.select(covered, cached, 0.0)
-        return dr.select(covered, cached, source.irradiance_at(scene, si, n, need))
+        # Without delta lights' direct light where the photons keep it apart (the
+        # vertex samples it: _trusted_direct).
+        nodelta = source.photons.irradiance_nodelta is not None
+        return dr.select(covered, cached, source.irradiance_at(scene, si, n, need, without_delta=nodelta))
 
     def _photon_estimate(self, p, n, depth_limit, active):
         """Global-map estimate of light that bounced at least once (direct light and
@@ -456,6 +459,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         # BSDF sampling of the diffuse lobe for direct light, combined with emitter
         # sampling by MIS: emitter sampling alone is noisy for large emitters (skies).
         diffuse_mis = prepared.info.has_infinite_emitter
+        delta_lights = any(is_delta(e) for e in scene.emitters())
         guiding = gather_first and self.settings.guiding and prepared.index is not None and \
             prepared.index.guiding_pays()
         lit = gather_first and self.settings.guiding and prepared.index is not None and \
@@ -575,6 +579,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
                 direct += β * self._diffuse_emitter_hit(
                     scene, sampler, si, bsdf, lit_diffuse & ~traced_here & ~from_records,
                     ctx_diffuse, n_em)
+            # ---- ...and where it reads the cache, from the lights records do not hold ----
+            if dr.hint(gather_first & delta_lights, mode="scalar"):
+                direct += β * self._trusted_direct(scene, sampler, si, bsdf,
+                                                   from_records & lit_diffuse, ctx_diffuse)
             L += direct
 
             # ---- Light that bounced before reaching the diffuse lobe ----
@@ -794,6 +802,18 @@ class PMICIntegrator(mi.SamplingIntegrator):
         bs.sampled_type = dr.select(picked, mi.UInt32(+mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
         bs.sampled_component = dr.select(picked, mi.UInt32(0), bs.sampled_component)
         return bs, weight, pdf_mis
+
+    def _trusted_direct(self, scene, sampler, si, bsdf, active, ctx_diffuse):
+        """Direct light on the diffuse lobe of a vertex that reads the cache (final
+        gather) from the delta lights (a sun, a spot), which neither the records nor the
+        photons it may read instead hold (their sharp shadows would be smeared): one
+        sample of them, a shadow ray, exact up to visibility. No MIS: a delta light
+        cannot be hit, and the lobe does not continue."""
+        ds, em_weight = sample_emitter_direction(scene, si, sampler.next_2d(), True, active,
+                                                 delta=True)
+        ok = mi.Bool(active) & (ds.pdf != 0.0)
+        f = bsdf.eval(ctx_diffuse, si, si.to_local(ds.d), ok)
+        return _finite(em_weight * f, ok)
 
     def _diffuse_emitter_hit(self, scene, sampler, si, bsdf, active, ctx_diffuse, n_em):
         """Direct light on the diffuse lobe from one BSDF-sampled ray that meets an

@@ -134,7 +134,7 @@ def _compatible(photons: PhotonMap, index, offset, valid, query_n, radius):
 def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
                         query_n: mi.Vector3f, radius=None, max_depth=None, min_depth=None,
                         skip_specular_paths: bool = False, active=True,
-                        boundary: bool = True) -> mi.Color3f:
+                        boundary: bool = True, without_delta_direct: bool = False) -> mi.Color3f:
     """Irradiance at ``query_p`` from the photons within ``radius``.
 
     ``grid`` is a :class:`PointGridPyramid` (the radius then adapts to the local photon
@@ -145,7 +145,8 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
     ``min_depth``/``max_depth`` (scalars or per-lane arrays) restrict the photons by
     their number of surface interactions: ``min_depth=2`` excludes direct light.
     ``skip_specular_paths`` excludes photons of L S* D paths (what a caustic map and
-    direct lighting already count). ``boundary`` corrects for discs that run past the
+    direct lighting already count); ``without_delta_direct`` the photons that came
+    straight from a delta light (``photons.delta_light`` and depth 1). ``boundary`` corrects for discs that run past the
     edge of their surface (see below): without it, a Cornell box came out 1.2 % dark.
     """
     query_n = mi.Vector3f(query_n)
@@ -169,6 +170,9 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
                 ok &= depth <= max_depth
         if skip_specular_paths:
             ok &= ~dr.gather(mi.Bool, photons.specular_path, index, ok)
+        if without_delta_direct:
+            ok &= ~(dr.gather(mi.Bool, photons.delta_light, index, ok) &
+                    (dr.gather(mi.UInt32, photons.depth, index, ok) == 1))
         # A masked gather reads zero power for rejected photons: no select needed.
         power = dr.gather(mi.Color3f, photons.power, index, ok)
         k = dr.square(1.0 - dist2 * inv_r2)
@@ -240,8 +244,14 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     irradiance = estimate_irradiance(half_b, grid_b, half_a.position, half_a.normal,
                                      max_depth=max_depth) * scale
     half_a.irradiance = dr.select(dr.all(dr.isfinite(irradiance)), irradiance, 0.0)
+    if half_b.delta_light is not None and bool(dr.any(half_b.delta_light)):
+        # Without the direct light of delta lights (a sun, a spot): gather rays and
+        # camera paths sample those themselves (GatherSource.irradiance_at).
+        nodelta = estimate_irradiance(half_b, grid_b, half_a.position, half_a.normal,
+                                      max_depth=max_depth, without_delta_direct=True) * scale
+        half_a.irradiance_nodelta = dr.select(dr.all(dr.isfinite(nodelta)), nodelta, 0.0)
     half_a.paths_emitted = photons.paths_emitted
-    dr.eval(half_a.irradiance)
+    dr.eval(half_a.irradiance, half_a.irradiance_nodelta)
     return half_a
 
 

@@ -41,6 +41,11 @@ JOIN_REACHES = 4.0
 LIGHTS_MIN_SHARE = 0.25
 #: ...and each light at least this share (smaller ones are not worth their cost).
 LIGHT_MIN_SHARE = 0.01
+#: A group whose radius is over this fraction of the records' extent (the diagonal of
+#: their bounding box) is no small source (a sunlit floor joined into one 4.4 m
+#: sphere round a whole 7.6 m room, from inside which it has no weight): dropped,
+#: guiding serves it. The lamp room's shades measure 0.06 and 0.09.
+MAX_LIGHT_EXTENT = 0.2
 #: At most this many lights (the most powerful): each costs a few flops per density
 #: evaluation, and a traced vertex evaluates the density once per emitter sample and
 #: once for its continuation.
@@ -85,6 +90,7 @@ class RecordLights:
         # reach, found through a grid of cells that wide (27 neighbours each); each
         # group is labelled by its smallest member (labels spread along the pairs).
         bp, br = p[bright], r[bright]
+        extent = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
         cell = JOIN_REACHES * float(br.max())
         keys = np.floor((bp - bp.min(axis=0)) / cell).astype(np.int64)
         buckets: dict = {}
@@ -122,7 +128,8 @@ class RecordLights:
             w = power[m]
             c = (bp[m] * w[:, None]).sum(0) / w.sum()
             radius = float(np.max(np.linalg.norm(bp[m] - c, axis=1) + br[m]))
-            lights.append((float(w.sum()), c, radius))
+            if radius <= MAX_LIGHT_EXTENT * extent:
+                lights.append((float(w.sum()), c, radius))
         total = float(np.sum(np.where(np.isfinite(lum), lum, 0.0) * r ** 2))
         lights.sort(key=lambda t: -t[0])
         lights = [t for t in lights[:MAX_LIGHTS] if t[0] >= LIGHT_MIN_SHARE * total]

@@ -69,6 +69,11 @@ class PhotonMap:
     path: mi.UInt32 = None  #: index of the light path that stored the photon, in [0, paths_emitted)
     paths_emitted: int = 0  #: light paths traced to make this map
     irradiance: mi.Color3f = field(default=None)  #: stage 2 result, None until computed
+    #: stage 2: ``irradiance`` without the direct light of delta lights (what gather
+    #: rays and camera paths sample themselves); None: the scene has no delta light
+    irradiance_nodelta: mi.Color3f = field(default=None)
+    #: the photon's light path started at a delta light (point, spot, directional)
+    delta_light: mi.Bool = field(default=None)
 
     @property
     def count(self) -> int:
@@ -81,17 +86,20 @@ class PhotonMap:
     def select(self, index: mi.UInt32) -> "PhotonMap":
         """The photons at ``index`` (same ``paths_emitted``)."""
         irr = None if self.irradiance is None else dr.gather(mi.Color3f, self.irradiance, index)
+        nodelta = None if self.irradiance_nodelta is None else \
+            dr.gather(mi.Color3f, self.irradiance_nodelta, index)
+        delta = None if self.delta_light is None else dr.gather(mi.Bool, self.delta_light, index)
         out = PhotonMap(dr.gather(mi.Point3f, self.position, index),
                         dr.gather(mi.Vector3f, self.normal, index),
                         dr.gather(mi.Color3f, self.power, index),
                         dr.gather(mi.UInt32, self.depth, index),
                         dr.gather(mi.Bool, self.specular_path, index),
                         dr.gather(mi.UInt32, self.path, index),
-                        self.paths_emitted, irr)
+                        self.paths_emitted, irr, nodelta, delta)
         # Evaluated now: left lazy, every kernel reading the map would redo the gathers
         # (random memory access) instead of reading the reordered arrays.
         dr.eval(out.position, out.normal, out.power, out.depth, out.specular_path, out.path,
-                out.irradiance)
+                out.irradiance, out.irradiance_nodelta, out.delta_light)
         return out
 
     def split_by_path(self):
@@ -160,12 +168,13 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
     path_id = dr.arange(mi.UInt32, n_paths) + opaque_u32(first_path)
     # Not scene.sample_emitter_ray: Mitsuba 3.9 places a rotated envmap's ray origins
     # on a disk tilted against the rays (too bright by up to 1.8x); see emission.py.
-    ray, flux, _ = sample_emitter_rays(
+    ray, flux, emitter = sample_emitter_rays(
         scene, mi.Float(0.0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
         mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True), sphere=sphere)
     specular_so_far = dr.full(mi.Bool, True, n_paths)
+    from_delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
-    out = {k: [] for k in ("position", "normal", "power", "depth", "specular", "path")}
+    out = {k: [] for k in ("position", "normal", "power", "depth", "specular", "path", "delta")}
     bounces = min(max_store_depth, MAX_PHOTON_BOUNCES)
     for bounce in range(1, bounces + 1):
         live = dr.width(path_id)
@@ -196,6 +205,7 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
             out["depth"].append(dr.zeros(mi.UInt32, dr.width(idx)) + opaque_u32(bounce))
             out["specular"].append(dr.gather(mi.Bool, specular_so_far, idx))
             out["path"].append(dr.gather(mi.UInt32, path_id, idx))
+            out["delta"].append(dr.gather(mi.Bool, from_delta, idx))
         if bounce == bounces:
             break
         bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(),
@@ -214,18 +224,20 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         alive &= rng.next_float32() < survive
         flux = flux * bsdf_weight / dr.maximum(survive, 1e-8)
         ray = si.spawn_ray(si.to_world(bs.wo))
-        dr.eval(alive, flux, ray, specular_so_far, rng.state, rng.inc)
+        dr.eval(alive, flux, ray, specular_so_far, from_delta, rng.state, rng.inc)
         keep = dr.compress(alive)
         ray = dr.gather(mi.Ray3f, ray, keep)
         flux = dr.gather(mi.Color3f, flux, keep)
         specular_so_far = dr.gather(mi.Bool, specular_so_far, keep)
+        from_delta = dr.gather(mi.Bool, from_delta, keep)
         path_id = dr.gather(mi.UInt32, path_id, keep)
         rng.state = dr.gather(mi.UInt64, rng.state, keep)
         rng.inc = dr.gather(mi.UInt64, rng.inc, keep)
-        dr.eval(ray, flux, specular_so_far, path_id, rng.state, rng.inc)
+        dr.eval(ray, flux, specular_so_far, from_delta, path_id, rng.state, rng.inc)
     return (concat(out["position"], mi.Point3f), concat(out["normal"], mi.Vector3f),
             concat(out["power"], mi.Color3f), concat(out["depth"], mi.UInt32),
-            concat(out["specular"], mi.Bool), concat(out["path"], mi.UInt32))
+            concat(out["specular"], mi.Bool), concat(out["path"], mi.UInt32),
+            concat(out["delta"], mi.Bool))
 
 
 def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed: int,
@@ -251,7 +263,7 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     sphere = emission_sphere(scene)  # once: every batch shoots from the same disk
     while stored < target and emitted < max_paths:
         batch_paths = int(min(batch_paths, max_paths - emitted))
-        pos, nrm, pwr, dep, spec, path = _trace_batch(
+        pos, nrm, pwr, dep, spec, path, delta = _trace_batch(
             scene, kind, emitted, batch_paths, photon_batch_seed(seed, batch, kind == CAUSTIC),
             max_store_depth, sphere)
         got = dr.width(dep)
@@ -264,11 +276,11 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
             cumulative = dr.cumsum(per_path) if hasattr(dr, "cumsum") else dr.prefix_sum(per_path) + per_path
             used_paths = int(dr.count(cumulative <= opaque_u32(remaining))[0]) if dr.width(cumulative) else 0
             keep = dr.compress(path < opaque_u32(emitted + used_paths))
-            pos, nrm, pwr, dep, spec, path = (dr.gather(type(a), a, keep)
-                                              for a in (pos, nrm, pwr, dep, spec, path))
+            pos, nrm, pwr, dep, spec, path, delta = (dr.gather(type(a), a, keep)
+                                                     for a in (pos, nrm, pwr, dep, spec, path, delta))
             got = dr.width(keep)
         if got:
-            parts.append((pos, nrm, pwr, dep, spec, path))
+            parts.append((pos, nrm, pwr, dep, spec, path, delta))
         stored += got
         emitted += used_paths
         batch += 1
@@ -294,7 +306,8 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     depth = concat([p[3] for p in parts], mi.UInt32)
     specular = concat([p[4] for p in parts], mi.Bool)
     path = concat([p[5] for p in parts], mi.UInt32)
+    delta = concat([p[6] for p in parts], mi.Bool)
     dr.eval(position, normal, power, depth, specular, path)
     log.info("pmic: %d %s photons from %d paths in %.2f s", stored, kind, emitted,
              time.perf_counter() - start)
-    return PhotonMap(position, normal, power, depth, specular, path, emitted)
+    return PhotonMap(position, normal, power, depth, specular, path, emitted, delta_light=delta)
