@@ -117,8 +117,10 @@ class PhotonMap:
         return halves[0], halves[1]
 
     def nbytes(self) -> int:
-        """Bytes held per the arrays above (positions, normals, powers, depths, E)."""
-        per = 4 * (3 + 3 + 3 + 1 + 1 + (3 if self.irradiance is not None else 0)) + 1
+        """Bytes held per the arrays above (positions, normals, powers, depths, E, flags)."""
+        per = 4 * (3 + 3 + 3 + 1 + 1 + (3 if self.irradiance is not None else 0)
+                   + (3 if self.irradiance_nodelta is not None else 0)) + 1 \
+            + (1 if self.delta_light is not None else 0)
         return per * self.count
 
 
