@@ -14,11 +14,11 @@ from pmic_integrator.lights import RecordLights
 
 
 def records(points, irradiance, reach=0.05):
-    """Upward-facing records at ``points`` (N × 3) with grey ``irradiance`` (N)."""
+    """Records at ``points`` (N × 3) with grey ``irradiance`` (N): RecordLights.select's
+    arguments."""
     p = np.asarray(points, dtype=np.float32)
     e = np.asarray(irradiance, dtype=np.float32)
     return (mi.Point3f(*[mi.Float(p[:, i]) for i in range(3)]),
-            mi.Vector3f(0.0, 0.0, dr.ones(mi.Float, len(p))),
             dr.full(mi.Float, reach, len(p)),
             mi.Color3f(mi.Float(e), mi.Float(e), mi.Float(e)))
 
@@ -65,13 +65,18 @@ def query(count, x=(0.3, -0.2, 0.0)):
             mi.Vector3f(0.0, 0.0, dr.ones(mi.Float, count)))
 
 
-def test_density_integrates_to_one():
+def lamps_seen_from_floor(count, seed):
+    """The two lamps' lights, ``count`` queries at one floor point with their total
+    weight, and a sampler of ``count`` lanes."""
     found = RecordLights.select(*floor_with_two_lamps())
-    n_dirs = 1 << 20
-    x, n = query(n_dirs)
-    total = found.total_weight(x, n)
+    x, n = query(count)
     sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(3, n_dirs)
+    sampler.seed(seed, count)
+    return found, x, n, found.total_weight(x, n), sampler
+
+
+def test_density_integrates_to_one():
+    found, x, n, total, sampler = lamps_seen_from_floor(1 << 20, seed=3)
     d = mi.warp.square_to_uniform_sphere(sampler.next_2d())
     integral = 4 * math.pi * float(dr.mean(found.pdf(x, n, total, d))[0])
     # Each cone holds (w_k / W) of the mass; their solid angles are ~0.03 sr of 4π, so
@@ -83,12 +88,7 @@ def test_samples_follow_the_density():
     """Sampled directions fall in each light's cone with probability w_k / W, and the
     density at every sampled direction is the cone's constant (the cones do not
     overlap here), so E[1/pdf] over samples is the solid angle of the cones."""
-    found = RecordLights.select(*floor_with_two_lamps())
-    count = 1 << 16
-    x, n = query(count)
-    total = found.total_weight(x, n)
-    sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(4, count)
+    found, x, n, total, sampler = lamps_seen_from_floor(1 << 16, seed=4)
     d = found.sample(x, n, total, sampler.next_1d(), sampler.next_2d())
     density = found.pdf(x, n, total, d)
     # Rounding puts ~1e-5 of the samples a hair outside their cone (density 0 there).

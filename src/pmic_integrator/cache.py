@@ -634,7 +634,7 @@ class RecordIndex:
     #: All direct irradiance at each record (delta lights too), for the share of
     #: bounced light in a record's light (guiding) and for the lights; not interpolated.
     direct_all: mi.Color3f = None
-    #: The brightest records as disk lights (final gather: continuation rays are drawn
+    #: The brightest records as spherical lights (final gather: continuation rays are drawn
     #: towards them, :mod:`pmic_integrator.lights`); None: no record stands out.
     lights: RecordLights | None = None
 

@@ -110,10 +110,8 @@ def choose_emitter(scene: mi.Scene, sample, active=True, delta: bool = False):
     if delta:
         order = [i for i in order if is_delta(scene.emitters()[i])]
     count = len(order)
-    if count == 1 and delta:
-        return dr.full(mi.UInt32, order[0], dr.width(sample)), dr.ones(mi.Float, dr.width(sample)), sample
     if count == 1:
-        return dr.zeros(mi.UInt32, dr.width(sample)), dr.ones(mi.Float, dr.width(sample)), sample
+        return dr.full(mi.UInt32, order[0], dr.width(sample)), dr.ones(mi.Float, dr.width(sample)), sample
     weights = [float(scene.emitters()[i].sampling_weight()) for i in order]
     if min(weights) == max(weights) or sum(weights) <= 0:
         scaled = sample * float(count)

@@ -71,12 +71,11 @@ class RecordLights:
     count: int
 
     @staticmethod
-    def select(position: mi.Point3f, normal: mi.Vector3f, reach: mi.Float,
-               irradiance: mi.Color3f) -> RecordLights | None:
+    def select(position: mi.Point3f, reach: mi.Float, irradiance: mi.Color3f) -> RecordLights | None:
         """The lights among records (``irradiance``: all of each record's light, ``reach``
         their a·R), or None where no record stands out (:data:`LIGHT_CONTRAST`).
-        Deterministic: a function of the records only (NumPy, stable orders)."""
-        del normal  # a group's records face many ways (the inside of a shade)
+        Deterministic: a function of the records only (NumPy, stable orders). Normals
+        play no part: a group's records face many ways (the inside of a shade)."""
         if dr.width(irradiance) == 0:
             return None
         lum = np.array(mi.luminance(irradiance), dtype=np.float64)

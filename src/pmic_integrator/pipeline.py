@@ -136,8 +136,7 @@ class SceneInfo:
         if not math.isfinite(area) or area <= 0:
             area = diagonal * diagonal
         infinite = any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) for e in scene.emitters())
-        delta = any(mi.has_flag(e.flags(), mi.EmitterFlags.DeltaPosition) or
-                    mi.has_flag(e.flags(), mi.EmitterFlags.DeltaDirection) for e in scene.emitters())
+        delta = any(is_delta(e) for e in scene.emitters())
         return SceneInfo(diagonal, area, len(scene.emitters()), has_diffuse, has_specular, infinite,
                          delta)
 
@@ -407,8 +406,9 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
     index = index.for_lookup()
     if settings.final_gather_camera:
         # What a gather hit reflects is all of its light: records keep their direct
-        # irradiance too, so the camera path needs no shadow rays there. Gather hits
-        # closer than a record radius are traced instead: no probes are needed.
+        # irradiance too (but for delta lights', below), so the camera path needs no
+        # other shadow rays there. Gather hits closer than a record radius are traced
+        # instead: no probes are needed.
         progress.update("cache", 0.7, f"{index.records.count} records: direct light")
         # Delta lights (a sun, a spot) are kept apart: interpolated across their sharp
         # shadows they lit the floor round a sunlit patch 11-15 % too bright (over the
@@ -418,7 +418,7 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
             scene, index.records.position, index.records.normal, cache_mod.RECORD_DIRECT_SAMPLES,
             settings.seed, prepared.ray_offset, shading_normal=index.records.shading_normal,
             split=True)
-        if any(is_delta(e) for e in scene.emitters()):
+        if prepared.info.has_delta_emitter:
             index.direct, index.direct_all = soft, soft + delta
             dr.eval(index.direct_all)
         else:
@@ -436,8 +436,8 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
             index.holds_caustics = True
         dr.eval(index.direct)
         # Records far brighter than the rest (a lamp's shade lit from inside) become
-        # disk lights that continuation rays are drawn towards.
-        index.lights = RecordLights.select(index.records.position, index.records.normal,
+        # spherical lights that continuation rays are drawn towards.
+        index.lights = RecordLights.select(index.records.position,
                                            index.records.radius * index.max_error,
                                            index.records.irradiance + index.light_direct)
     stats["records"] = index.records.count
