@@ -94,9 +94,20 @@ def _random_records(count, seed):
     return p, nrm.astype(np.float32), r, e, gt, gr
 
 
-def test_interpolation_matches_brute_force_ward_formula():
+@pytest.mark.parametrize("crowded", [False, True])
+def test_interpolation_matches_brute_force_ward_formula(crowded):
+    """Ward's interpolation (with the backup reach) against the formula in NumPy;
+    ``crowded`` adds a cluster of wide records, so that some queries are reached by
+    more records than the interpolation's first pass keeps (INTERPOLATION_SLOTS)."""
     a = 0.6
     p, nrm, r, e, gt, gr = _random_records(120, 7)
+    if crowded:
+        q, qn_, _, qe, qgt, qgr = _random_records(40, 9)
+        q[:, :2] = 0.4 + 0.2 * q[:, :2]
+        p, nrm, r, e = (np.concatenate(pair) for pair in
+                        ((p, q), (nrm, qn_), (r, np.full(40, 0.4, np.float32)), (e, qe)))
+        gt = [np.concatenate(pair) for pair in zip(gt, qgt)]
+        gr = [np.concatenate(pair) for pair in zip(gr, qgr)]
     records = CacheRecords(mi.Point3f(p.T), mi.Vector3f(nrm.T), mi.Float(r), mi.Color3f(e.T),
                            tuple(mi.Vector3f(g.T) for g in gt), tuple(mi.Vector3f(g.T) for g in gr))
     index = RecordIndex.build(records, a)
@@ -112,6 +123,7 @@ def test_interpolation_matches_brute_force_ward_formula():
     want = np.zeros((500, 3))
     want_cov = np.zeros(500, bool)
     backup_used = 0
+    reached_by = np.zeros(500, int)
     for q in range(500):
         err = np.linalg.norm(x[q] - p, axis=1) / r + np.sqrt(np.maximum(0, 1 - nrm @ qn[q]))
         inv = 1.0 / np.maximum(err, cache.MIN_ERROR)
@@ -121,6 +133,7 @@ def test_interpolation_matches_brute_force_ward_formula():
             w = np.maximum(inv - 1.0 / reach, 0.0) * _covers_np(x[q], qn[q], p, nrm, r, reach)
             if w.sum() > 0:
                 break
+        reached_by[q] = (w > 0).sum()
         if w.sum() <= 0:
             continue
         backup_used += reach != a
@@ -130,6 +143,9 @@ def test_interpolation_matches_brute_force_ward_formula():
         ext = np.maximum(ext, 0.0)
         want[q] = (w[:, None] * ext).sum(0) / w.sum()
     assert backup_used > 5  # the backup path is exercised
+    # ...and the slots, and (crowded) the second walk of lanes that overflow them.
+    assert ((reached_by > 1) & (reached_by <= cache.INTERPOLATION_SLOTS)).sum() > 20
+    assert ((reached_by > cache.INTERPOLATION_SLOTS).sum() > 20) == crowded
     np.testing.assert_array_equal(covered, want_cov)
     assert 0.5 < want_cov.mean() < 1.0
     np.testing.assert_allclose(got[want_cov], want[want_cov], rtol=2e-4, atol=2e-5)
