@@ -11,7 +11,7 @@ import pytest
 import pmic_integrator
 from pmic_integrator.integrator import PMICIntegrator
 
-from scene_builders import SMALL_PMIC as SMALL, pmic_cornell as small_cornell
+from scene_builders import SMALL_PMIC as SMALL, envmap_exterior, pmic_cornell as small_cornell
 
 
 def test_load_dict_and_render():
@@ -276,3 +276,22 @@ def test_every_global_photon_is_covered_after_the_whole_pipeline(photons):
     prepared = integrator._prepared
     covered = prepared.index.covered(prepared.global_map.position, prepared.global_map.normal)
     assert bool(dr.all(covered))
+
+
+def test_a_caustic_pass_that_cannot_pay_is_given_up_after_its_first_batch():
+    """A plastic ball under a sky focuses a few light paths in a thousand: the caustic
+    map would be dropped (records gather those paths), so the pass stops as soon as its
+    yield shows it (the first batch, 65k paths) instead of tracing its whole bound
+    (20 paths per requested photon: 2 M here)."""
+    from pmic_integrator import photons, pipeline
+
+    scene = mi.load_dict({**envmap_exterior(size=(8, 6)),
+                          "integrator": {"type": "pmic", "global_photons": 5000,
+                                         "caustic_photons": 100_000}})
+    mi.render(scene, spp=1)
+    stats = scene.integrator().stats
+    assert stats["photons_caustic"] == 0
+    assert any(s.startswith("caustic map:") and "gather rays count caustic light" in s
+               for s in stats["skipped"])
+    assert stats["paths_emitted_caustic"] == photons.FIRST_BATCH_PATHS
+    assert stats["paths_emitted_caustic"] < pipeline.CAUSTIC_PATHS_PER_PHOTON * 100_000 / 10

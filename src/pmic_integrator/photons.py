@@ -243,13 +243,17 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
 
 
 def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed: int,
-                  max_paths: int, progress=None, warn: bool = True) -> PhotonMap:
+                  max_paths: int, progress=None, warn: bool = True,
+                  give_up_below: int = 0) -> PhotonMap:
     """Emit light paths in batches until ``target`` photons of ``kind`` are stored.
 
     ``max_depth`` has Mitsuba's meaning for the camera paths that will use the map: a
     photon after ``k`` surface interactions completes a path of at least ``k + 1``
     segments, so photons are stored up to ``max_depth - 1`` interactions (-1:
-    unbounded). At most ``max_paths`` light paths are emitted.
+    unbounded). At most ``max_paths`` light paths are emitted, and none more once the
+    yield so far, carried on to ``max_paths``, would store fewer than
+    ``give_up_below`` photons (a map the caller drops below some count: its paths
+    would be traced for nothing).
     """
     if target <= 0 or len(scene.emitters()) == 0:
         return PhotonMap.empty()
@@ -290,6 +294,8 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
             progress(kind, stored, target, emitted)
         # Size the next batch from the yield so far (+10 % so the last batch overshoots).
         yield_per_path = stored / max(emitted, 1)
+        if yield_per_path * max_paths < give_up_below:
+            break
         need = (target - stored) / max(yield_per_path, 1e-3) * 1.1
         batch_paths = int(min(max(need, 1024), MAX_BATCH_PATHS))
     if warn and stored < LOW_YIELD_FRACTION * target:
