@@ -24,6 +24,7 @@ import mitsuba as mi
 
 from . import streams
 from .emission import sample_emitter_direction
+from . import skylight
 from .gather import GatherSource, stratified_directions, trace_gather_rays
 from ._jit import (concat, opaque_float, opaque_u32, rng as make_rng, segment_blocked,
                    shading_normal_on_side, surface_offset)
@@ -588,13 +589,15 @@ def guide_cdfs(owner: mi.UInt32, direction: mi.Vector3f, radiance: mi.Color3f, c
 
 def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f, samples: int,
                       seed: int, offset: float, shading_normal: mi.Vector3f = None,
-                      split: bool = False):
+                      split: bool = False, sky=None):
     """Irradiance straight from the emitters at each (position, normal): the mean of
     ``samples`` emitter samples with shadow rays (Mitsuba's emitter importance
     sampling), each non-finite sample counted as 0. The cosine is to
     ``shading_normal`` where given (as Mitsuba's BSDFs weigh light). With ``split``,
     ``(from lights that are not delta, from delta lights)``: the same samples, each
-    counted in the part of the light it came from."""
+    counted in the part of the light it came from. With ``sky`` (a
+    :class:`~pmic_integrator.skylight.SkySampler`), an environment is sampled by its
+    radiance times the cosine."""
     count = dr.width(position)
     lanes = count * samples
     owner = dr.arange(mi.UInt32, lanes) // opaque_u32(samples)
@@ -605,8 +608,11 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
     ref.p = p + n * surface_offset(p, offset)
     ref.n = n
     rng = make_rng(lanes, seed, stream=streams.RECORD_DIRECT)
-    ds, weight = sample_emitter_direction(scene, ref, mi.Point2f(rng.next_float32(), rng.next_float32()),
-                                          True)
+    u = mi.Point2f(rng.next_float32(), rng.next_float32())
+    if sky is None:
+        ds, weight = sample_emitter_direction(scene, ref, u, True)
+    else:
+        ds, weight = skylight.sample_emitter_direction(scene, sky, ref, cos_n, u)
     e = weight * dr.maximum(dr.dot(ds.d, cos_n), 0.0)
     e = dr.select((ds.pdf > 0) & dr.all(dr.isfinite(e)), e, 0.0)
     if not split:

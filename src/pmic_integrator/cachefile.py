@@ -7,7 +7,8 @@ the arrays are: the format name and version, pmic's version, the fingerprint of 
 scene the cache was built for and the settings it was built with, and for every
 dataclass the project writes (``PreparedScene`` and what it holds) the class and
 field of each array, so that it is rebuilt exactly as it was saved, bit for bit, with
-no recomputation. The Mitsuba scene itself is not saved: a loaded cache is attached to
+no recomputation (but for the sky tables of :mod:`pmic_integrator.skylight`, which
+are rebuilt from the scene). The Mitsuba scene itself is not saved: a loaded cache is attached to
 the scene it is loaded for, after checking that its fingerprint matches.
 
 Errors (``ValueError``, naming the file): not a pmic cache, a newer or older format,
@@ -114,7 +115,9 @@ def save(path, prepared, fingerprint: str, settings_key: tuple) -> Path:
 
     path = Path(path)
     arrays: dict = {}
-    body = _flatten(prepared, "prepared", arrays)
+    # The sky tables are the scene's, and cheap: rebuilt on loading (they hold the
+    # emitter object, and its index in scene.emitters() changes from load to load).
+    body = _flatten(dataclasses.replace(prepared, sky=None), "prepared", arrays)
     meta = {"format": FORMAT, "version": VERSION, "pmic_version": __version__,
             "fingerprint": fingerprint, "settings": repr(settings_key), "body": body}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
@@ -154,4 +157,6 @@ def load(path, scene, fingerprint: str, settings_key: tuple):
         prepared = _build(meta["body"], arrays, scene, _classes())
     except (KeyError, TypeError, ValueError, RuntimeError) as error:
         raise CacheFileError(f"{where} is corrupt ({type(error).__name__}: {error})") from error
+    from .skylight import SkySampler
+    prepared.sky = SkySampler.build(scene)
     return prepared

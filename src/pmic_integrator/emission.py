@@ -25,7 +25,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["sample_emitter_rays", "sample_emitter_direction", "choose_emitter", "emitter_order",
+__all__ = ["sample_emitter_rays", "sample_emitter_direction", "choose_emitter", "emitter_order", "emitter_pmf",
            "emission_sphere", "scene_bbox"]
 
 
@@ -121,6 +121,16 @@ def choose_emitter(scene: mi.Scene, sample, active=True, delta: bool = False):
         pick, sample, pmf = mi.DiscreteDistribution(weights).sample_reuse_pmf(sample, active)
         weight = dr.rcp(pmf)
     return dr.gather(mi.UInt32, mi.UInt32(order), pick), weight, sample
+
+
+def emitter_pmf(scene: mi.Scene, index: int) -> float:
+    """Probability that :func:`choose_emitter` (without ``delta``) picks emitter
+    ``index`` of ``scene.emitters()``."""
+    count = len(scene.emitters())
+    weights = [float(e.sampling_weight()) for e in scene.emitters()]
+    if count == 1 or min(weights) == max(weights) or sum(weights) <= 0:
+        return 1.0 / count
+    return weights[index] / sum(weights)
 
 
 def sample_emitter_direction(scene: mi.Scene, ref, sample: mi.Point2f, test_visibility: bool,

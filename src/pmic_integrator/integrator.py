@@ -16,6 +16,7 @@ from . import cachefile, pipeline, streams
 from ._jit import shading_normal_on_side, surface_offset
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
 from .emission import sample_emitter_direction
+from . import skylight
 from .gather import trace_gather_rays
 from .irradiance import estimate_irradiance
 from .pipeline import PreparedScene, SceneInfo, scene_fingerprint  # noqa: F401 (re-exported)
@@ -492,6 +493,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         prev_si = dr.zeros(mi.SurfaceInteraction3f)
         prev_bsdf_pdf = mi.Float(1.0)
         prev_bsdf_delta = mi.Bool(True)
+        prev_normal = mi.Vector3f(0.0, 0.0, 1.0)  #: shading normal of prev_si, on its lit side
         valid = mi.Bool(False)
         traced = mi.UInt32(0)  #: diffuse vertices path-traced so far (final gather)
         # ``armed``: the last traced diffuse vertex read the caustic map and every vertex
@@ -518,7 +520,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
             # ---- Emission reached by BSDF sampling (MIS with emitter sampling) ----
             ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
-            em_pdf = scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta)
+            em_pdf = self._emitter_pdf(scene, prev_si, ds, prev_normal, ~prev_bsdf_delta)
             mis = dr.select(prev_bsdf_delta, 1.0, mis_weight(prev_bsdf_pdf, n_em * em_pdf))
             shown = active & ~crossed
             if dr.hint(hide_emitters, mode="scalar"):
@@ -572,7 +574,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             # ---- Direct light by emitter sampling ----
             active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth) & \
                 ~(from_records & ~mixed)
-            direct = β * self._direct_light(scene, sampler, si, bsdf, active_em, separable,
+            direct = β * self._direct_light(scene, sampler, si, shading_n, bsdf, active_em, separable,
                                             traced_here, armed, from_records,
                                             diffuse_mis, ctx_all, ctx_diffuse, ctx_rest,
                                             guide_record, guide_fraction if guiding else None)
@@ -580,7 +582,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             # ---- Direct light on the diffuse lobe by BSDF sampling (MIS) ----
             if dr.hint(diffuse_mis, mode="scalar"):
                 direct += β * self._diffuse_emitter_hit(
-                    scene, sampler, si, bsdf, lit_diffuse & ~traced_here & ~from_records,
+                    scene, sampler, si, shading_n, bsdf, lit_diffuse & ~traced_here & ~from_records,
                     ctx_diffuse, n_em)
             # ---- ...and where it reads the cache, from the lights records do not hold ----
             if dr.hint(gather_first & delta_lights, mode="scalar"):
@@ -664,6 +666,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             prev_si = dr.detach(si, True)
             prev_bsdf_pdf = mis_pdf
             prev_bsdf_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            prev_normal = mi.Vector3f(shading_n)
             ray = si.spawn_ray(si.to_world(bs.wo))
 
             # Russian roulette, as Mitsuba's path tracers (η² keeps it unitless).
@@ -696,7 +699,12 @@ class PMICIntegrator(mi.SamplingIntegrator):
         guides["normal"] = dr.select(hit, si.sh_frame.n, 0.0)
         return guides
 
-    def _direct_light(self, scene, sampler, si, bsdf, active, separable, traced, armed,
+    def _emitter_pdf(self, scene, ref, ds, normal, active):
+        """Density of the emitter samples of :meth:`_direct_light` at ``ref`` (shading
+        normal ``normal``) for the emitter direction ``ds`` (MIS)."""
+        return skylight.pdf_emitter_direction(scene, self._view.sky, ref, ds, normal, active)
+
+    def _direct_light(self, scene, sampler, si, normal, bsdf, active, separable, traced, armed,
                       no_diffuse, diffuse_mis, ctx_all, ctx_diffuse, ctx_rest,
                       guide_record=None, guide_fraction=None):
         """Mean of ``direct_samples`` emitter samples (shadow rays) at ``si``.
@@ -713,10 +721,12 @@ class PMICIntegrator(mi.SamplingIntegrator):
         """
         n_em = float(self.settings.direct_samples)
         index = self._view.index
+        sky = self._view.sky
         guided = guide_fraction is not None  # given only where the index guides
 
         def one_sample(sampler):
-            ds, em_weight = sample_emitter_direction(scene, si, sampler.next_2d(), True, active)
+            ds, em_weight = skylight.sample_emitter_direction(scene, sky, si, normal, sampler.next_2d(),
+                                                              active)
             ok = active & (ds.pdf != 0.0)
             wo = si.to_local(ds.d)
             f_diffuse, pdf_diffuse = bsdf.eval_pdf(ctx_diffuse, si, wo, ok & separable)
@@ -818,7 +828,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         f = bsdf.eval(ctx_diffuse, si, si.to_local(ds.d), ok)
         return _finite(em_weight * f, ok)
 
-    def _diffuse_emitter_hit(self, scene, sampler, si, bsdf, active, ctx_diffuse, n_em):
+    def _diffuse_emitter_hit(self, scene, sampler, si, normal, bsdf, active, ctx_diffuse, n_em):
         """Direct light on the diffuse lobe from one BSDF-sampled ray that meets an
         emitter (an area light or the environment), MIS-weighted against the
         ``direct_samples`` emitter samples of :meth:`_direct_light`."""
@@ -827,7 +837,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         ray = si.spawn_ray(si.to_world(bs.wo))
         hit = scene.ray_intersect(ray, mi.RayFlags.All, coherent=False, active=ok)
         ds = mi.DirectionSample3f(scene, si=hit, ref=si)
-        em_pdf = scene.pdf_emitter_direction(si, ds, ok)
+        em_pdf = self._emitter_pdf(scene, si, ds, normal, ok)
         emitted = ds.emitter.eval(hit, ok)
         return _finite(weight * emitted * mis_weight(bs.pdf, n_em * em_pdf), ok)
 

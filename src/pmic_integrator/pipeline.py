@@ -39,6 +39,7 @@ from .irradiance import (adapted_lookup_radius, estimate_irradiance, lookup_radi
                          precompute_irradiance, sort_into_grid)
 from .photons import CAUSTIC, GLOBAL, PhotonMap, trace_photons
 from .settings import Settings, check_against_scene
+from .skylight import SkySampler
 
 log = logging.getLogger("pmic")
 
@@ -163,6 +164,8 @@ class PreparedScene:
     skipped: list = field(default_factory=list)  #: passes skipped, with reasons
     stats: dict = field(default_factory=dict)  #: figures of the stages above
     gather_source: GatherSource | None = None  #: what gather rays read (stage 2)
+    #: Sky radiance × cosine tables for direct light (None: no environment emitter).
+    sky: SkySampler | None = None
 
     @property
     def length_scale(self) -> float:
@@ -272,7 +275,7 @@ def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
 
     t0 = time.perf_counter()
     prepared = PreparedScene(key=key, info=info, index=None,
-                             skipped=skipped, stats=stats, **lookups)
+                             skipped=skipped, stats=stats, sky=SkySampler.build(scene), **lookups)
     index, cache_stats = build_cache(scene, settings, prepared, progress)
     dr.sync_thread()
     stats.update(cache_stats)
@@ -428,7 +431,7 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
         soft, delta = cache_mod.direct_irradiance(
             scene, index.records.position, index.records.normal, cache_mod.RECORD_DIRECT_SAMPLES,
             settings.seed, prepared.ray_offset, shading_normal=index.records.shading_normal,
-            split=True)
+            split=True, sky=prepared.sky)
         if prepared.info.has_delta_emitter:
             index.direct, index.direct_all = soft, soft + delta
             dr.eval(index.direct_all)

@@ -1,0 +1,284 @@
+"""Direct light from an environment sampled by its radiance times the cosine.
+
+Mitsuba's ``envmap`` samples directions by radiance alone: on a surface a quarter of
+the samples (the material preview's ground) fall below the horizon and the rest ignore
+the cosine, and a ``constant`` sky is sampled uniformly over the whole sphere. Direct
+light from a sky was then most of the noise left on such scenes.
+
+:class:`SkySampler` tabulates, for each of ``NORMAL_BINS`` bins of surface normals, the
+sky's radiance times the cosine to the bin's normal over equal-area cells of the
+sphere, and samples a cell by that table, then a direction uniformly within it. A
+sample for a point of normal ``n`` is drawn, with probability ``PRODUCT_FRACTION``, from
+the table of ``n``'s bin, else by the emitter's own sampling, and weighted by the
+mixture of the two densities (one-sample MIS): unbiased whatever the tables hold (the
+emitter's own density covers every direction it lights), and never worse than
+``1 / (1 - PRODUCT_FRACTION)`` times the emitter's own variance, so a sun finer than
+a cell, which the tables smear, keeps being found by the emitter's sampling.
+
+Directions are in world space; a cell is a band of ``z`` times a sector of ``φ``
+(equal solid angles, ``4π / cells`` each); normal bins are the cells of an octahedral
+map.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .emission import choose_emitter, emission_sphere, emitter_order, emitter_pmf
+
+# --- Internal tuning constants -------------------------------------------------------
+#: Cells of the sky tables: bands of z × sectors of φ (~2.8° × 2.8° at the horizon).
+SKY_BANDS = 64
+SKY_SECTORS = 128
+#: Normal bins: an octahedral map of the sphere of normals, this many bins a side
+#: (bins ~15° wide). Each table uses the cosine widened by its bin's angular radius
+#: (the largest cosine of any normal in the bin), so no direction that lights a point
+#: is left out of its bin's table.
+NORMAL_RES = 16
+NORMAL_BINS = NORMAL_RES * NORMAL_RES
+#: Radiance of a cell: the mean of this many × this many stratified evaluations.
+CELL_SAMPLES = 4
+#: Fraction of a cell's width kept clear on each side by sample() (see there).
+CELL_MARGIN = 1e-4
+#: Probability that a sky sample is drawn from the product tables (the rest: the
+#: emitter's own sampling; see the module's docstring).
+PRODUCT_FRACTION = 0.75
+
+
+def _cell_of(d: mi.Vector3f, bands: int, sectors: int):
+    """(band, sector) of world direction ``d`` on the equal-area z × φ grid."""
+    band = mi.UInt32(dr.clip((d.z + 1.0) * (0.5 * bands), 0.0, bands - 1))
+    phi = dr.atan2(d.y, d.x)
+    phi = dr.select(phi < 0, phi + 2.0 * math.pi, phi)
+    sector = mi.UInt32(dr.clip(phi * (sectors / (2.0 * math.pi)), 0.0, sectors - 1))
+    return band, sector
+
+
+def _direction(band, sector, u, v, bands: int, sectors: int):
+    """The direction at (u, v) ∈ [0, 1)² within cell (band, sector) (NumPy or Dr.Jit)."""
+    if isinstance(band, np.ndarray):
+        z = np.clip(-1.0 + (band + u) * (2.0 / bands), -1.0, 1.0)
+        phi = (sector + v) * (2.0 * math.pi / sectors)
+        s = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+        return np.stack([s * np.cos(phi), s * np.sin(phi), z], -1)
+    z = dr.clip(-1.0 + (mi.Float(band) + u) * (2.0 / bands), -1.0, 1.0)
+    phi = (mi.Float(sector) + v) * (2.0 * math.pi / sectors)
+    s = dr.safe_sqrt(1.0 - z * z)
+    sp, cp = dr.sincos(phi)
+    return mi.Vector3f(s * cp, s * sp, z)
+
+
+def _octahedral(n):
+    """Octahedral map of unit vectors (NumPy, rows) to [0, 1]²."""
+    p = n[:, :2] / np.abs(n).sum(1, keepdims=True)
+    folded = (1.0 - np.abs(p[:, ::-1])) * np.where(p >= 0, 1.0, -1.0)
+    p = np.where(n[:, 2:3] < 0, folded, p)
+    return p * 0.5 + 0.5
+
+
+def _octahedral_inverse(uv):
+    """Unit vectors (NumPy, rows) of points of [0, 1]² of the octahedral map."""
+    p = uv * 2.0 - 1.0
+    z = 1.0 - np.abs(p).sum(1)
+    t = np.maximum(-z, 0.0)
+    xy = p - t[:, None] * np.where(p >= 0, 1.0, -1.0)
+    v = np.concatenate([xy, z[:, None]], 1)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def normal_bin(n: mi.Vector3f) -> mi.UInt32:
+    """Bin of unit vector ``n`` in the NORMAL_RES² octahedral map (Dr.Jit)."""
+    inv = dr.rcp(dr.maximum(dr.abs(n.x) + dr.abs(n.y) + dr.abs(n.z), 1e-30))
+    px, py = n.x * inv, n.y * inv
+    fx = (1.0 - dr.abs(py)) * dr.select(px >= 0, 1.0, -1.0)
+    fy = (1.0 - dr.abs(px)) * dr.select(py >= 0, 1.0, -1.0)
+    below = n.z < 0
+    px, py = dr.select(below, fx, px), dr.select(below, fy, py)
+    i = mi.UInt32(dr.clip((px * 0.5 + 0.5) * NORMAL_RES, 0.0, NORMAL_RES - 1))
+    j = mi.UInt32(dr.clip((py * 0.5 + 0.5) * NORMAL_RES, 0.0, NORMAL_RES - 1))
+    return i * NORMAL_RES + j
+
+
+@dataclass
+class SkySampler:
+    """Sky radiance × cosine tables for one environment emitter (see the module)."""
+
+    emitter: object  #: the environment emitter (``scene.emitters()[emitter_index]``)
+    emitter_index: int  #: its index in ``scene.emitters()``
+    pmf: float  #: the probability that an emitter sample picks it (emission.emitter_pmf)
+    #: How far a sample's point lies from the shading point: beyond all the geometry
+    #: (twice the radius of emission.emission_sphere), for its shadow ray.
+    distance: float
+    cdf: mi.Float  #: per normal bin, the cumulative distribution over the sky cells
+    #: Solid-angle density of a direction drawn uniformly within a cell: cells / 4π.
+    CELL_DENSITY = SKY_BANDS * SKY_SECTORS / (4.0 * math.pi)
+
+    @staticmethod
+    def build(scene: mi.Scene) -> "SkySampler | None":
+        """Tables for the scene's environment (``envmap``, ``constant``: an infinite
+        emitter that is not a delta), or None if it has none or more than one."""
+        infinite = [i for i in emitter_order(scene)
+                    if mi.has_flag(scene.emitters()[i].flags(), mi.EmitterFlags.Infinite)
+                    and not mi.has_flag(scene.emitters()[i].flags(), mi.EmitterFlags.Delta)]
+        if len(infinite) != 1:
+            return None
+        index = infinite[0]
+        emitter = scene.emitters()[index]
+        # Mean luminance of each cell from CELL_SAMPLES² stratified directions.
+        cells = SKY_BANDS * SKY_SECTORS
+        k = CELL_SAMPLES
+        cell = np.repeat(np.arange(cells), k * k)
+        sub = np.tile(np.arange(k * k), cells)
+        band, sector = cell // SKY_SECTORS, cell % SKY_SECTORS
+        u, v = (sub // k + 0.5) / k, (sub % k + 0.5) / k
+        d = _direction(band.astype(np.float64), sector.astype(np.float64), u, v, SKY_BANDS, SKY_SECTORS)
+        si = dr.zeros(mi.SurfaceInteraction3f, len(d))
+        si.wi = -mi.Vector3f(d.T.astype(np.float32))
+        radiance = np.array(mi.luminance(mi.Color3f(emitter.eval(si))), dtype=np.float64)
+        radiance = np.broadcast_to(radiance, (len(d),))  # a constant sky gives one value
+        radiance = np.where(np.isfinite(radiance) & (radiance > 0), radiance, 0.0)
+        radiance = radiance.reshape(cells, k * k).mean(1)
+        if not radiance.sum() > 0:
+            return None
+        # × the cosine to each bin's normal, widened by the bin's and the cell's
+        # angular radii: the largest cosine between any normal of the bin and any
+        # direction of the cell, so that no direction lighting a point is left out.
+        res = NORMAL_RES
+        centres_uv = np.stack(np.meshgrid((np.arange(res) + 0.5) / res, (np.arange(res) + 0.5) / res,
+                                          indexing="ij"), -1).reshape(-1, 2)
+        normals = _octahedral_inverse(centres_uv)
+        bin_radius = np.zeros(NORMAL_BINS)
+        for du in (-0.5, 0.5):
+            for dv in (-0.5, 0.5):
+                corner = _octahedral_inverse(np.clip(centres_uv + np.array([du, dv]) / res, 0.0, 1.0))
+                bin_radius = np.maximum(bin_radius, np.arccos(np.clip((corner * normals).sum(1), -1, 1)))
+        cell_ids = np.arange(cells)
+        centres = _direction(cell_ids // SKY_SECTORS * 1.0, cell_ids % SKY_SECTORS * 1.0,
+                             np.full(cells, 0.5), np.full(cells, 0.5), SKY_BANDS, SKY_SECTORS)
+        cell_radius = np.zeros(cells)
+        for cu in (0.0, 1.0):
+            for cv in (0.0, 1.0):
+                corner = _direction(cell_ids // SKY_SECTORS * 1.0, cell_ids % SKY_SECTORS * 1.0,
+                                    np.full(cells, cu), np.full(cells, cv), SKY_BANDS, SKY_SECTORS)
+                cell_radius = np.maximum(cell_radius, np.arccos(np.clip((corner * centres).sum(1), -1, 1)))
+        angle = np.arccos(np.clip(normals @ centres.T, -1.0, 1.0))  # bins × cells
+        angle = np.maximum(angle - bin_radius[:, None] - cell_radius[None, :], 0.0)
+        cosine = np.maximum(np.cos(angle), 0.0)
+        table = cosine * radiance[None, :]
+        total = table.sum(1, keepdims=True)
+        # A bin that sees no sky (rare: a black upper half) samples by radiance alone.
+        table = np.where(total > 0, table, radiance[None, :])
+        cdf = np.cumsum(table, 1)
+        cdf /= cdf[:, -1:]
+        cdf[:, -1] = 1.0
+        return SkySampler(emitter, index, emitter_pmf(scene, index), 2.0 * emission_sphere(scene)[1],
+                          mi.Float(cdf.astype(np.float32).ravel()))
+
+    def _bin(self, n: mi.Vector3f) -> mi.UInt32:
+        return normal_bin(n)
+
+    def sample(self, n: mi.Vector3f, u: mi.Point2f, active=True):
+        """A world direction from the table of ``n``'s bin and its solid-angle density."""
+        cells = SKY_BANDS * SKY_SECTORS
+        start = self._bin(n) * cells
+        below = dr.zeros(mi.UInt32, dr.width(u.x))  # cells whose cumulative value <= u.x
+        step = 1 << (cells - 1).bit_length() - 1
+        while step >= 1:
+            probe = below + step - 1
+            go = (probe < cells) & (dr.gather(mi.Float, self.cdf, start + dr.minimum(probe, cells - 1),
+                                              active) <= u.x)
+            below = dr.select(go, below + step, below)
+            step //= 2
+        cell = dr.minimum(below, cells - 1)
+        upper = dr.gather(mi.Float, self.cdf, start + cell, active)
+        lower = dr.select(cell > 0, dr.gather(mi.Float, self.cdf, start + cell - 1, active & (cell > 0)), 0.0)
+        t = dr.clip((u.x - lower) / dr.maximum(upper - lower, 1e-30), 0.0, 1.0)
+        # A margin of CELL_MARGIN of the cell is left on each side, so that rounding
+        # never puts the direction in a neighbouring cell (whose density pdf() would
+        # give): the interior is the cell up to a measure of 4e-4 of it.
+        inner = 1.0 - 2.0 * CELL_MARGIN
+        d = _direction(cell // SKY_SECTORS, cell % SKY_SECTORS, CELL_MARGIN + inner * t,
+                       CELL_MARGIN + inner * u.y, SKY_BANDS, SKY_SECTORS)
+        return d, (upper - lower) * self.CELL_DENSITY
+
+    def pdf(self, n: mi.Vector3f, d: mi.Vector3f, active=True) -> mi.Float:
+        """Solid-angle density of :meth:`sample` at world direction ``d``."""
+        band, sector = _cell_of(d, SKY_BANDS, SKY_SECTORS)
+        slot = self._bin(n) * (SKY_BANDS * SKY_SECTORS) + band * SKY_SECTORS + sector
+        upper = dr.gather(mi.Float, self.cdf, slot, active)
+        first = (band == 0) & (sector == 0)
+        lower = dr.select(first, 0.0, dr.gather(mi.Float, self.cdf, slot - 1, active & ~first))
+        return dr.select(active, dr.maximum(upper - lower, 0.0) * self.CELL_DENSITY, 0.0)
+
+
+def _is_sky(sky: SkySampler, emitter) -> mi.Bool:
+    return emitter == mi.EmitterPtr(sky.emitter)
+
+
+def _mixture_pdf(sky: SkySampler, ref, normal, d, env_pdf, active):
+    """Density of a sky sample (emitter choice included) for direction ``d``, given the
+    emitter's own density ``env_pdf`` (emitter choice included)."""
+    return PRODUCT_FRACTION * sky.pmf * sky.pdf(normal, d, active) + (1.0 - PRODUCT_FRACTION) * env_pdf
+
+
+def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, normal: mi.Vector3f,
+                             sample: mi.Point2f, active=True):
+    """:func:`pmic_integrator.emission.sample_emitter_direction` (with a shadow ray),
+    except that the sky is sampled by the mixture of the module's docstring about the
+    surface normal ``normal`` (world space, on the side the light arrives from).
+    ``ds.pdf`` is the density of the whole strategy (emitter choice included), as
+    :func:`pdf_emitter_direction` gives it for a direction met by other means."""
+    from .emission import sample_emitter_direction as plain
+    if sky is None:
+        return plain(scene, ref, sample, True, active)
+    active = mi.Bool(active)
+    sample = mi.Point2f(sample)
+    index, weight, sample.x = choose_emitter(scene, sample.x, active)
+    is_sky = active & (index == sky.emitter_index)
+    product = is_sky & (sample.x < PRODUCT_FRACTION)
+    stretched = dr.select(product, sample.x / PRODUCT_FRACTION,
+                          (sample.x - PRODUCT_FRACTION) / (1.0 - PRODUCT_FRACTION))
+    sample.x = dr.select(is_sky, dr.clip(stretched, 0.0, 0.99999994), sample.x)
+    own = active & ~product
+    emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, own)
+    ds, spectrum = emitter.sample_direction(ref, sample, own)
+    if len(scene.emitters()) > 1:
+        ds.pdf *= dr.rcp(weight)
+        spectrum *= weight
+    # Sky lanes: the direction drawn from the tables where ``product``, the radiance
+    # and the mixture's density for both kinds.
+    d, _ = sky.sample(normal, sample, product)
+    dist = dr.select(own, ds.dist, sky.distance)
+    ds.d = dr.select(product, d, ds.d)
+    ds.dist = dist
+    ds.p = dr.select(product, ref.p + d * dist, ds.p)
+    ds.n = dr.select(product, -d, ds.n)
+    ds.delta = dr.select(product, False, ds.delta)
+    ds.emitter = dr.select(product, mi.EmitterPtr(sky.emitter), ds.emitter)
+    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ds.d))
+    si.wi = -ds.d
+    radiance = sky.emitter.eval(si, is_sky)
+    env_pdf = dr.select(product, sky.pmf * sky.emitter.pdf_direction(ref, ds, product), ds.pdf)
+    pdf = _mixture_pdf(sky, ref, normal, ds.d, env_pdf, is_sky)
+    ds.pdf = dr.select(is_sky, pdf, ds.pdf)
+    spectrum = dr.select(is_sky, radiance * dr.rcp(dr.maximum(pdf, 1e-30)), spectrum)
+    ok = active & (ds.pdf != 0.0)
+    spectrum = dr.select(ok, spectrum, 0.0)
+    blocked = scene.ray_test(ref.spawn_ray_to(ds.p), ok)
+    return ds, dr.select(blocked, 0.0, spectrum)
+
+
+def pdf_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, ds: mi.DirectionSample3f,
+                          normal: mi.Vector3f, active=True) -> mi.Float:
+    """Density with which :func:`sample_emitter_direction` about ``normal`` draws the
+    emitter direction ``ds`` (``scene.pdf_emitter_direction`` without a sky)."""
+    pdf = scene.pdf_emitter_direction(ref, ds, active)
+    if sky is None:
+        return pdf
+    is_sky = mi.Bool(active) & _is_sky(sky, ds.emitter)
+    return dr.select(is_sky, _mixture_pdf(sky, ref, normal, ds.d, pdf, is_sky), pdf)
+
