@@ -93,9 +93,13 @@ def test_mixture_is_unbiased_and_far_less_noisy_than_the_emitters_own_sampling(n
 def _courtyard():
     """A grey ground and two grey boxes under a constant sky, seen from above: the
     boxes' walls face half of the sky, the ground sees it all but where the boxes stand."""
+    return mi.load_dict(courtyard_dict())
+
+
+def courtyard_dict():
     grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}
     T = mi.ScalarTransform4f
-    return mi.load_dict({
+    return ({
         "type": "scene", "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
         "ground": {"type": "rectangle", "to_world": T().scale(6), "bsdf": grey},
         "box_a": {"type": "cube", "to_world": T().translate([-1.2, 0, 1]).scale([0.8, 2, 1]), "bsdf": grey},
@@ -129,3 +133,23 @@ def test_direct_light_from_a_sky_has_less_noise_in_renders():
     assert with_tables * 2 < without  # measured: 2.25×
     for img in (image, image_without):
         assert np.mean(img) == pytest.approx(np.mean(ref), rel=0.01)
+
+
+@pytest.mark.parametrize("weights", [(1.0, 1.0), (1.0, 3.0)])
+def test_sky_and_other_lights_together_stay_unbiased(weights):
+    """A sky and an area light (equal or unequal ``sampling_weight``): direct light by
+    the mixture, MIS-weighted against BSDF samples, matches path's mean; the sky's share
+    of the emitter choice is what Mitsuba's own rule gives it."""
+    T = mi.ScalarTransform4f
+    base = courtyard_dict()
+    base["sky"]["sampling_weight"] = weights[0]
+    base["lamp"] = {"type": "rectangle", "to_world": T().translate([0, -1.5, 2.5]).scale(0.5),
+                    "flip_normals": True,
+                    "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 8.0},
+                                "sampling_weight": weights[1]}}
+    scene = mi.load_dict(base)
+    sky = SkySampler.build(scene)
+    assert sky.pmf == pytest.approx(weights[0] / sum(weights))
+    ref = np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": 2}), spp=256))
+    img = np.array(mi.render(scene, integrator=mi.load_dict({"type": "pmic", "max_depth": 2}), spp=64))
+    assert np.mean(img) == pytest.approx(np.mean(ref), rel=0.01)
