@@ -192,7 +192,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
          - 4
          - Emitter samples (shadow rays) per camera vertex (1-64): shadow rays cost far less
            than camera samples (which also interpolate the cache), and direct light is
-           most of the noise left.
+           most of the noise left. An environment (``envmap``, ``constant``) is sampled
+           by its radiance times the cosine (:mod:`pmic_integrator.skylight`).
        * - ``seed``
          - integer
          - 0
