@@ -295,3 +295,22 @@ def test_a_caustic_pass_that_cannot_pay_is_given_up_after_its_first_batch():
                for s in stats["skipped"])
     assert stats["paths_emitted_caustic"] == photons.FIRST_BATCH_PATHS
     assert stats["paths_emitted_caustic"] < pipeline.CAUSTIC_PATHS_PER_PHOTON * 100_000 / 10
+
+
+def test_an_environment_map_with_nan_or_inf_texels_is_refused_naming_it():
+    """Mitsuba samples such a map wrongly (path renders NaN pixels); pmic's image was
+    finite but wrong (its photons all dropped, and with NaN its sky samples too, half
+    as bright): an error instead, before any photon is traced."""
+    for value in (np.nan, np.inf):
+        bitmap = np.ones((8, 16, 3), np.float32)
+        bitmap[2, 3] = value
+        scene = {**envmap_exterior(size=(8, 6)), "integrator": {"type": "pmic", "global_photons": 5000}}
+        scene["sky"] = {"type": "envmap", "bitmap": mi.Bitmap(bitmap)}
+        with pytest.raises(Exception) as info:
+            mi.render(mi.load_dict(scene), spp=1)
+        chain, error = [], info.value
+        while error is not None:
+            chain.append(error)
+            error = error.__cause__
+        refusal = [e for e in chain if isinstance(e, ValueError) and "NaN/Inf" in str(e)]
+        assert refusal and "'sky'" in str(refusal[0]) and "1 NaN/Inf texel;" in str(refusal[0])

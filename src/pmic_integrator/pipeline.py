@@ -240,6 +240,28 @@ class Progress:
         self.update(stage, 1.0, detail)
 
 
+def check_environment_maps(scene: mi.Scene) -> None:
+    """Refuse an environment map with NaN or Inf texels (before any photon is traced):
+    Mitsuba builds its sampling distribution from the texels, and with a NaN or an Inf
+    in it the directions it samples and the densities it reports are NaN or degenerate
+    (``path`` renders NaN pixels; pmic's photons were all dropped, and with NaN its sky
+    samples too: a silently dark image)."""
+    for emitter in scene.emitters():
+        if not mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite):
+            continue
+        params = mi.traverse(emitter)
+        if "data" not in params.keys():
+            continue
+        data = np.asarray(params["data"])
+        bad = ~np.isfinite(data.reshape(-1, data.shape[-1]) if data.ndim > 1 else data.reshape(-1, 1))
+        nan = int(bad.any(1).sum())
+        if nan:
+            name = emitter.id() or emitter.class_name()
+            raise ValueError(f"emitter {name!r} ({emitter.class_name()}): its image has {nan} NaN/Inf "
+                             f"texel{'s' if nan > 1 else ''}; an environment map must hold finite radiance "
+                             f"(replace them, e.g. with numpy.nan_to_num, before loading)")
+
+
 # ----------------------------------------------------------------------------------------
 # The pipeline
 # ----------------------------------------------------------------------------------------
@@ -252,6 +274,7 @@ def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
         key = (id(scene), settings.key(), scene_fingerprint(scene))
     info = SceneInfo.of(scene)
     check_against_scene(settings, info.surface_area, info.diagonal)
+    check_environment_maps(scene)
     stats = {}
     need_global, need_caustic, skipped = plan_passes(info, settings)
 
