@@ -21,6 +21,7 @@ map.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -103,6 +104,44 @@ def normal_bin(n: mi.Vector3f) -> mi.UInt32:
     return i * NORMAL_RES + j
 
 
+@functools.lru_cache(maxsize=1)
+def _tables_geometry():
+    """What the tables share whatever the sky (computed once per process): the
+    CELL_SAMPLES² stratified directions of every cell, and for each normal bin and cell
+    the cosine widened by the bin's and the cell's angular radii (the largest cosine
+    between any normal of the bin and any direction of the cell, so that no direction
+    lighting a point is left out of its bin's table)."""
+    cells = SKY_BANDS * SKY_SECTORS
+    k = CELL_SAMPLES
+    cell = np.repeat(np.arange(cells), k * k)
+    sub = np.tile(np.arange(k * k), cells)
+    directions = _direction((cell // SKY_SECTORS).astype(np.float64), (cell % SKY_SECTORS).astype(np.float64),
+                            (sub // k + 0.5) / k, (sub % k + 0.5) / k, SKY_BANDS, SKY_SECTORS)
+    res = NORMAL_RES
+    centres_uv = np.stack(np.meshgrid((np.arange(res) + 0.5) / res, (np.arange(res) + 0.5) / res,
+                                      indexing="ij"), -1).reshape(-1, 2)
+    normals = _octahedral_inverse(centres_uv)
+    bin_radius = np.zeros(NORMAL_BINS)
+    for du in (-0.5, 0.5):
+        for dv in (-0.5, 0.5):
+            corner = _octahedral_inverse(np.clip(centres_uv + np.array([du, dv]) / res, 0.0, 1.0))
+            bin_radius = np.maximum(bin_radius, np.arccos(np.clip((corner * normals).sum(1), -1, 1)))
+    cell_ids = np.arange(cells)
+    band, sector = (cell_ids // SKY_SECTORS).astype(np.float64), (cell_ids % SKY_SECTORS).astype(np.float64)
+    centres = _direction(band, sector, np.full(cells, 0.5), np.full(cells, 0.5), SKY_BANDS, SKY_SECTORS)
+    cell_radius = np.zeros(cells)
+    for cu in (0.0, 1.0):
+        for cv in (0.0, 1.0):
+            corner = _direction(band, sector, np.full(cells, cu), np.full(cells, cv), SKY_BANDS, SKY_SECTORS)
+            cell_radius = np.maximum(cell_radius, np.arccos(np.clip((corner * centres).sum(1), -1, 1)))
+    angle = np.arccos(np.clip(normals @ centres.T, -1.0, 1.0))  # bins × cells
+    angle = np.maximum(angle - bin_radius[:, None] - cell_radius[None, :], 0.0)
+    cosine = np.maximum(np.cos(angle), 0.0)
+    directions.setflags(write=False)
+    cosine.setflags(write=False)
+    return directions, cosine
+
+
 @dataclass
 class SkySampler:
     """Sky radiance × cosine tables for one environment emitter (see the module)."""
@@ -128,46 +167,16 @@ class SkySampler:
             return None
         index = infinite[0]
         emitter = scene.emitters()[index]
+        directions, cosine = _tables_geometry()
         # Mean luminance of each cell from CELL_SAMPLES² stratified directions.
-        cells = SKY_BANDS * SKY_SECTORS
-        k = CELL_SAMPLES
-        cell = np.repeat(np.arange(cells), k * k)
-        sub = np.tile(np.arange(k * k), cells)
-        band, sector = cell // SKY_SECTORS, cell % SKY_SECTORS
-        u, v = (sub // k + 0.5) / k, (sub % k + 0.5) / k
-        d = _direction(band.astype(np.float64), sector.astype(np.float64), u, v, SKY_BANDS, SKY_SECTORS)
-        si = dr.zeros(mi.SurfaceInteraction3f, len(d))
-        si.wi = -mi.Vector3f(d.T.astype(np.float32))
+        si = dr.zeros(mi.SurfaceInteraction3f, len(directions))
+        si.wi = -mi.Vector3f(directions.T.astype(np.float32))
         radiance = np.array(mi.luminance(mi.Color3f(emitter.eval(si))), dtype=np.float64)
-        radiance = np.broadcast_to(radiance, (len(d),))  # a constant sky gives one value
+        radiance = np.broadcast_to(radiance, (len(directions),))  # a constant sky gives one value
         radiance = np.where(np.isfinite(radiance) & (radiance > 0), radiance, 0.0)
-        radiance = radiance.reshape(cells, k * k).mean(1)
+        radiance = radiance.reshape(SKY_BANDS * SKY_SECTORS, -1).mean(1)
         if not radiance.sum() > 0:
             return None
-        # × the cosine to each bin's normal, widened by the bin's and the cell's
-        # angular radii: the largest cosine between any normal of the bin and any
-        # direction of the cell, so that no direction lighting a point is left out.
-        res = NORMAL_RES
-        centres_uv = np.stack(np.meshgrid((np.arange(res) + 0.5) / res, (np.arange(res) + 0.5) / res,
-                                          indexing="ij"), -1).reshape(-1, 2)
-        normals = _octahedral_inverse(centres_uv)
-        bin_radius = np.zeros(NORMAL_BINS)
-        for du in (-0.5, 0.5):
-            for dv in (-0.5, 0.5):
-                corner = _octahedral_inverse(np.clip(centres_uv + np.array([du, dv]) / res, 0.0, 1.0))
-                bin_radius = np.maximum(bin_radius, np.arccos(np.clip((corner * normals).sum(1), -1, 1)))
-        cell_ids = np.arange(cells)
-        centres = _direction(cell_ids // SKY_SECTORS * 1.0, cell_ids % SKY_SECTORS * 1.0,
-                             np.full(cells, 0.5), np.full(cells, 0.5), SKY_BANDS, SKY_SECTORS)
-        cell_radius = np.zeros(cells)
-        for cu in (0.0, 1.0):
-            for cv in (0.0, 1.0):
-                corner = _direction(cell_ids // SKY_SECTORS * 1.0, cell_ids % SKY_SECTORS * 1.0,
-                                    np.full(cells, cu), np.full(cells, cv), SKY_BANDS, SKY_SECTORS)
-                cell_radius = np.maximum(cell_radius, np.arccos(np.clip((corner * centres).sum(1), -1, 1)))
-        angle = np.arccos(np.clip(normals @ centres.T, -1.0, 1.0))  # bins × cells
-        angle = np.maximum(angle - bin_radius[:, None] - cell_radius[None, :], 0.0)
-        cosine = np.maximum(np.cos(angle), 0.0)
         table = cosine * radiance[None, :]
         total = table.sum(1, keepdims=True)
         # A bin that sees no sky (rare: a black upper half) samples by radiance alone.
