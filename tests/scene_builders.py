@@ -224,3 +224,22 @@ def sun_shelter(size=(40, 30), sky=False):
     if sky:
         scene["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.4, 0.5, 0.7]}}
     return scene
+
+
+def courtyard(size=(48, 36), sun=True, sky=(0.4, 0.5, 0.7)):
+    """A ground walled on three sides, part of it roofed, with a block, under a constant
+    sky and (``sun``) a directional sun: an open scene lit mostly directly, where
+    direct light from the sky and the walls' occlusion of it are most of the noise."""
+    grey = _diffuse((0.5, 0.5, 0.5))
+    d = {"type": "scene", "sky": {"type": "constant", "radiance": {"type": "rgb", "value": list(sky)}},
+         "ground": {"type": "rectangle", "to_world": T().scale(8), "bsdf": _diffuse((0.45, 0.4, 0.35))},
+         "wall_n": _box_part((0, 3, 1.5), (3, 0.1, 1.5), grey),
+         "wall_w": _box_part((-3, 0, 1.5), (0.1, 3, 1.5), grey),
+         "wall_e": _box_part((3, -0.5, 1.0), (0.1, 2.5, 1.0), grey),
+         "roof": _box_part((-1.5, 1.5, 2.5), (1.5, 1.5, 0.05), grey),
+         "block": _box_part((0.8, 0.2, 0.5), (0.5, 0.5, 0.5), grey),
+         "sensor": _sensor((4, -7, 5), (0, 0.5, 0.8), 55, size, up=(0, 0, 1))}
+    if sun:
+        d["sun"] = {"type": "directional", "direction": [-0.5, 0.6, -0.8],
+                    "irradiance": {"type": "rgb", "value": 3.0}}
+    return d

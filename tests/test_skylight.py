@@ -90,13 +90,15 @@ def test_mixture_is_unbiased_and_far_less_noisy_than_the_emitters_own_sampling(n
     assert np.mean(~np.isclose(np.array(ds.pdf), np.array(again), rtol=1e-3)) < 1e-4
 
 
-def _courtyard():
+def _open_ground():
     """A grey ground and two grey boxes under a constant sky, seen from above: the
-    boxes' walls face half of the sky, the ground sees it all but where the boxes stand."""
-    return mi.load_dict(courtyard_dict())
+    boxes' walls face half of the sky, the ground sees it all but where the boxes stand
+    (open: scene_builders.courtyard, walled and roofed, has more of its noise in the
+    walls' occlusion)."""
+    return mi.load_dict(open_ground_dict())
 
 
-def courtyard_dict():
+def open_ground_dict():
     grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}
     T = mi.ScalarTransform4f
     return ({
@@ -112,10 +114,10 @@ def courtyard_dict():
 
 
 def test_direct_light_from_a_sky_has_less_noise_in_renders():
-    """Direct light only (max_depth 2) in a courtyard under a constant sky: the noise
+    """Direct light only (max_depth 2) on an open ground under a constant sky: the noise
     of pmic's image (spread over render seeds) with the sky tables against without them
     (the same integrator with SkySampler.build disabled), both unbiased against path."""
-    scene = _courtyard()
+    scene = _open_ground()
     ref = np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": 2}), spp=512))
 
     def noise():
@@ -141,7 +143,7 @@ def test_sky_and_other_lights_together_stay_unbiased(weights):
     the mixture, MIS-weighted against BSDF samples, matches path's mean; the sky's share
     of the emitter choice is what Mitsuba's own rule gives it."""
     T = mi.ScalarTransform4f
-    base = courtyard_dict()
+    base = open_ground_dict()
     base["sky"]["sampling_weight"] = weights[0]
     base["lamp"] = {"type": "rectangle", "to_world": T().translate([0, -1.5, 2.5]).scale(0.5),
                     "flip_normals": True,

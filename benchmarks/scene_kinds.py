@@ -1,0 +1,133 @@
+#!/usr/bin/env python
+"""pmic against ``path`` at equal time on scenes of the kinds the public checks use,
+built in code: a room lit through a door ajar from the next room (diffuse floor, and a
+rough-aluminium floor whose glossy lobe fills the caustic map), and a courtyard under a
+constant sky, with and without a sun.
+
+    python benchmarks/scene_kinds.py                     # 320×240, pmic 16 spp, ~8 minutes
+    python benchmarks/scene_kinds.py --scenes courtyard_sun --resolution 160
+
+As ``../shared/scenes/compare_with_path.py`` does it: pmic at its defaults and ``--spp``
+samples per pixel, timed after a warm-up with another seed (every stage included);
+``path`` then given pmic's wall time (its spp from its measured rate); both scored by
+relMSE against a ``path`` reference of ``--ref-spp`` samples (computed once, kept in
+``~/.cache/pmic-benchmarks``; its own noise is in both errors). Speed-up = how much
+sooner pmic reaches its error than ``path`` would, with path's relMSE falling as 1/t.
+Writes ``benchmarks/results/scene_kinds_<res>.{json,md}``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import pmic_integrator  # noqa: F401  (before mitsuba: the LLVM it needs)
+import mitsuba as mi
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+CACHE = Path.home() / ".cache" / "pmic-benchmarks"
+ROUGH_ALUMINIUM = {"type": "roughconductor", "material": "Al", "alpha": 0.25}
+
+
+def scene_dict(name: str, size):
+    """The test scenes of ``tests/scene_builders.py``, with Mitsuba's default pixel
+    filter (a Gaussian), as real scenes have, instead of the tests' box."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    import scene_builders as sb
+    if name == "door_diffuse":
+        d = sb.two_rooms(door_width=0.25, size=size)
+    elif name == "door_rough_floor":
+        d = sb.two_rooms(door_width=0.25, size=size, floor_bsdf=ROUGH_ALUMINIUM)
+    elif name == "courtyard_sun":
+        d = sb.courtyard(size=size)
+    elif name == "courtyard_overcast":
+        d = sb.courtyard(size=size, sun=False)
+    else:
+        raise ValueError(f"scene must be one of {SCENES}; got {name!r}")
+    d["sensor"]["film"].pop("rfilter", None)
+    return d
+
+
+SCENES = ("door_diffuse", "door_rough_floor", "courtyard_sun", "courtyard_overcast")
+
+
+def relmse(img, ref):
+    return float(np.mean((img - ref) ** 2 / (ref ** 2 + 1e-2)))
+
+
+def render(scene, integrator, spp, seed):
+    start = time.perf_counter()
+    image = np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed), dtype=np.float64)
+    return image, time.perf_counter() - start
+
+
+def measure(name, size, spp, ref_spp):
+    scene = mi.load_dict(scene_dict(name, size))
+    CACHE.mkdir(parents=True, exist_ok=True)
+    ref_file = CACHE / f"{name}_{size[0]}x{size[1]}_{ref_spp}_gaussian.npy"
+    if not ref_file.exists():
+        np.save(ref_file, np.array(mi.render(scene, integrator=mi.load_dict({"type": "path"}),
+                                             spp=ref_spp, seed=1_000_000), dtype=np.float32))
+    ref = np.load(ref_file).astype(np.float64)
+    render(scene, mi.load_dict({"type": "pmic", "seed": 1}), spp, 1)  # warm-up (compiles)
+    pmic = mi.load_dict({"type": "pmic"})
+    img, t_pmic = render(scene, pmic, spp, 0)
+    stats = pmic.stats
+    path = mi.load_dict({"type": "path"})
+    _, t_rate = render(scene, path, 8, 1)  # warm-up, then the rate
+    _, t_rate = render(scene, path, 16, 2)
+    path_spp = max(1, round(16 * t_pmic / t_rate))
+    pimg, t_path = render(scene, path, path_spp, 3)
+    e_pmic, e_path = relmse(img, ref), relmse(pimg, ref)
+    return {"scene": name, "resolution": list(size), "pmic_spp": spp, "pmic_s": t_pmic,
+            "pmic_relmse": e_pmic, "pmic_luminance_ratio": float(img.mean() / ref.mean()),
+            "pmic_stages": {k: stats[k] for k in ("time_photons", "time_precompute", "time_cache",
+                                                   "time_render")},
+            "photons_caustic": stats["photons_caustic"], "records": stats["records"],
+            "path_spp": path_spp, "path_s": t_path, "path_relmse": e_path,
+            "speedup": (e_path * t_path) / (e_pmic * t_pmic),
+            "finite": bool(np.isfinite(img).all()), "reference_spp": ref_spp}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    parser.add_argument("--resolution", type=int, default=320, help="width; height is 3/4 of it")
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--ref-spp", type=int, default=2048)
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    mi.set_variant("llvm_ad_rgb")
+    size = (args.resolution, args.resolution * 3 // 4)
+    rows = []
+    for name in args.scenes:
+        row = measure(name, size, args.spp, args.ref_spp)
+        rows.append(row)
+        print(f"{name:20s} pmic {row['pmic_s']:.2f} s relMSE {row['pmic_relmse']:.2e} "
+              f"lum {row['pmic_luminance_ratio']:.4f} | path {row['path_spp']} spp {row['path_s']:.2f} s "
+              f"relMSE {row['path_relmse']:.2e} | speed-up {row['speedup']:.2f}", flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    stem = args.out / f"scene_kinds_{size[0]}"
+    command = "python benchmarks/scene_kinds.py" + ("" if argv is None else " " + " ".join(argv))
+    stem.with_suffix(".json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
+    lines = [f"# pmic against path at equal time, scenes of the public checks' kinds, {size[0]}×{size[1]}",
+             "", f"`{command}` (pmic {args.spp} spp; reference: path {args.ref_spp} spp)", "",
+             "| scene | pmic s | photons / precompute / cache / render s | pmic relMSE | luminance | "
+             "path spp | path relMSE | speed-up |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        st = r["pmic_stages"]
+        lines.append(f"| {r['scene']} | {r['pmic_s']:.2f} | {st['time_photons']:.2f} / "
+                     f"{st['time_precompute']:.2f} / {st['time_cache']:.2f} / {st['time_render']:.2f} | "
+                     f"{r['pmic_relmse']:.2e} | {r['pmic_luminance_ratio']:.4f} | {r['path_spp']} | "
+                     f"{r['path_relmse']:.2e} | {r['speedup']:.2f} |")
+    stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {stem}.json/.md")
+
+
+if __name__ == "__main__":
+    main()
