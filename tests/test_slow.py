@@ -8,14 +8,19 @@ from pmic_integrator import metrics, scenes
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name,threshold", [("cornell_box", 1.2e-3), ("indirect_room", 2e-3)])
+@pytest.mark.parametrize("name,threshold", [("cornell_box", 4e-3), ("indirect_room", 1.6e-2)])
 def test_512_pmic_matches_reference(name, threshold):
+    """Defaults (the final gather) at 32 spp. Its error there is noise, which falls as
+    spp grows (benchmarks/error_vs_time.py): measured 2.9e-3 (Cornell box) and
+    1.1-1.2e-2 (room) over two seeds, luminance within 0.3 %. The thresholds were
+    first-hit figures (1.2e-3, 2e-3) from before the final gather became the default,
+    and these tests, outside CI, had failed since."""
     reference = scenes.load_reference(name, 512)
     scene = scenes.load_scene(name, resolution=512, spp=32)
     image = np.array(mi.render(scene, integrator=mi.load_dict({"type": "pmic"}), spp=32))
     assert np.isfinite(image).all()
     assert metrics.rel_mse(image, reference) < threshold
-    assert abs(metrics.luminance_ratio(image, reference) - 1) < 0.02
+    assert abs(metrics.luminance_ratio(image, reference) - 1) < 0.01
 
 
 @pytest.mark.slow
