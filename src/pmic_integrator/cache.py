@@ -23,7 +23,6 @@ import drjit as dr
 import mitsuba as mi
 
 from . import streams
-from .emission import sample_emitter_direction
 from . import skylight
 from .gather import GatherSource, stratified_directions, trace_gather_rays
 from ._jit import (concat, opaque_float, opaque_u32, rng as make_rng, segment_blocked,
@@ -608,11 +607,8 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
     ref.p = p + n * surface_offset(p, offset)
     ref.n = n
     rng = make_rng(lanes, seed, stream=streams.RECORD_DIRECT)
-    u = mi.Point2f(rng.next_float32(), rng.next_float32())
-    if sky is None:
-        ds, weight = sample_emitter_direction(scene, ref, u, True)
-    else:
-        ds, weight = skylight.sample_emitter_direction(scene, sky, ref, cos_n, u)
+    ds, weight = skylight.sample_emitter_direction(
+        scene, sky, ref, cos_n, mi.Point2f(rng.next_float32(), rng.next_float32()))
     e = weight * dr.maximum(dr.dot(ds.d, cos_n), 0.0)
     e = dr.select((ds.pdf > 0) & dr.all(dr.isfinite(e)), e, 0.0)
     if not split:

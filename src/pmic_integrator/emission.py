@@ -112,8 +112,8 @@ def choose_emitter(scene: mi.Scene, sample, active=True, delta: bool = False):
     count = len(order)
     if count == 1:
         return dr.full(mi.UInt32, order[0], dr.width(sample)), dr.ones(mi.Float, dr.width(sample)), sample
-    weights = [float(scene.emitters()[i].sampling_weight()) for i in order]
-    if min(weights) == max(weights) or sum(weights) <= 0:
+    weights = _choice_weights(scene, order)
+    if weights is None:
         scaled = sample * float(count)
         pick = dr.minimum(mi.UInt32(scaled), count - 1)
         weight, sample = dr.full(mi.Float, float(count), dr.width(sample)), scaled - mi.Float(pick)
@@ -123,14 +123,19 @@ def choose_emitter(scene: mi.Scene, sample, active=True, delta: bool = False):
     return dr.gather(mi.UInt32, mi.UInt32(order), pick), weight, sample
 
 
+def _choice_weights(scene: mi.Scene, order: list[int]) -> list[float] | None:
+    """The ``sampling_weight`` of each emitter in ``order``, or None where Mitsuba's
+    rule chooses uniformly (all equal, or none positive)."""
+    weights = [float(scene.emitters()[i].sampling_weight()) for i in order]
+    return None if min(weights) == max(weights) or sum(weights) <= 0 else weights
+
+
 def emitter_pmf(scene: mi.Scene, index: int) -> float:
     """Probability that :func:`choose_emitter` (without ``delta``) picks emitter
     ``index`` of ``scene.emitters()``."""
-    count = len(scene.emitters())
-    weights = [float(e.sampling_weight()) for e in scene.emitters()]
-    if count == 1 or min(weights) == max(weights) or sum(weights) <= 0:
-        return 1.0 / count
-    return weights[index] / sum(weights)
+    order = list(range(len(scene.emitters())))
+    weights = _choice_weights(scene, order)
+    return 1.0 / len(order) if weights is None else weights[index] / sum(weights)
 
 
 def sample_emitter_direction(scene: mi.Scene, ref, sample: mi.Point2f, test_visibility: bool,

@@ -30,12 +30,15 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import emission
 from .emission import choose_emitter, emission_sphere, emitter_order, emitter_pmf
 
 # --- Internal tuning constants -------------------------------------------------------
 #: Cells of the sky tables: bands of z × sectors of φ (~2.8° × 2.8° at the horizon).
 SKY_BANDS = 64
 SKY_SECTORS = 128
+#: Solid-angle density of a direction drawn uniformly within a cell: cells / 4π.
+CELL_DENSITY = SKY_BANDS * SKY_SECTORS / (4.0 * math.pi)
 #: Normal bins: an octahedral map of the sphere of normals, this many bins a side
 #: (bins ~15° wide). Each table uses the cosine widened by its bin's angular radius
 #: (the largest cosine of any normal in the bin), so no direction that lights a point
@@ -88,14 +91,6 @@ def _direction(band, sector, u, v, bands: int, sectors: int):
     s = dr.safe_sqrt(1.0 - z * z)
     sp, cp = dr.sincos(phi)
     return mi.Vector3f(s * cp, s * sp, z)
-
-
-def _octahedral(n):
-    """Octahedral map of unit vectors (NumPy, rows) to [0, 1]²."""
-    p = n[:, :2] / np.abs(n).sum(1, keepdims=True)
-    folded = (1.0 - np.abs(p[:, ::-1])) * np.where(p >= 0, 1.0, -1.0)
-    p = np.where(n[:, 2:3] < 0, folded, p)
-    return p * 0.5 + 0.5
 
 
 def _octahedral_inverse(uv):
@@ -171,24 +166,21 @@ def _peaked_cells(emitter):
     i = np.arange(side * side)
     u = mi.Point2f(mi.Float(((i // side) + 0.5) / side), mi.Float(((i % side) + 0.5) / side))
     ds, weight = emitter.sample_direction(dr.zeros(mi.Interaction3f, side * side), u)
+    band, sector = _cell_of(ds.d, SKY_BANDS, SKY_SECTORS)
+    cell = np.array(band * SKY_SECTORS + sector, dtype=np.int64)
     pdf = np.array(ds.pdf, dtype=np.float64)
     power = np.array(mi.luminance(mi.Color3f(weight)), dtype=np.float64)  # L / p
-    d = np.array(ds.d, dtype=np.float64).T
-    pdf, power = (np.broadcast_to(a, (len(d),)) for a in (pdf, power))  # a constant: one value
+    pdf, power = (np.broadcast_to(a, cell.shape) for a in (pdf, power))  # a constant: one value
     ok = np.isfinite(pdf) & (pdf > 0) & np.isfinite(power) & (power > 0)
     if not ok.any():
         return np.zeros(cells, bool), 0.0
-    d, pdf, power = d[ok], pdf[ok], power[ok]
-    band = np.clip(((d[:, 2] + 1.0) * 0.5 * SKY_BANDS).astype(np.int64), 0, SKY_BANDS - 1)
-    phi = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2.0 * math.pi)
-    sector = np.clip((phi * SKY_SECTORS / (2.0 * math.pi)).astype(np.int64), 0, SKY_SECTORS - 1)
-    cell = band * SKY_SECTORS + sector
+    cell, pdf, power = cell[ok], pdf[ok], power[ok]
     cell_power = np.bincount(cell, weights=power, minlength=cells)
     total = cell_power.sum()
     peak = np.zeros(cells)
     np.maximum.at(peak, cell, pdf)
     # The density of a cell's power spread evenly over its solid angle.
-    even = cell_power / total * (cells / (4.0 * math.pi))
+    even = cell_power / total * CELL_DENSITY
     peaked = (cell_power > 0) & (peak > PEAK_RATIO * even)
     return peaked, float(cell_power[peaked].sum() / total)
 
@@ -207,8 +199,6 @@ class SkySampler:
     #: (twice the radius of emission.emission_sphere), for its shadow ray.
     distance: float
     cdf: mi.Float  #: per normal bin, the cumulative distribution over the sky cells
-    #: Solid-angle density of a direction drawn uniformly within a cell: cells / 4π.
-    CELL_DENSITY = SKY_BANDS * SKY_SECTORS / (4.0 * math.pi)
 
     @staticmethod
     def build(scene: mi.Scene) -> "SkySampler | None":
@@ -271,7 +261,7 @@ class SkySampler:
         inner = 1.0 - 2.0 * CELL_MARGIN
         d = _direction(cell // SKY_SECTORS, cell % SKY_SECTORS, CELL_MARGIN + inner * t,
                        CELL_MARGIN + inner * u.y, SKY_BANDS, SKY_SECTORS)
-        return d, (upper - lower) * self.CELL_DENSITY
+        return d, (upper - lower) * CELL_DENSITY
 
     def pdf(self, n: mi.Vector3f, d: mi.Vector3f, active=True) -> mi.Float:
         """Solid-angle density of :meth:`sample` at world direction ``d``."""
@@ -280,18 +270,18 @@ class SkySampler:
         upper = dr.gather(mi.Float, self.cdf, slot, active)
         first = (band == 0) & (sector == 0)
         lower = dr.select(first, 0.0, dr.gather(mi.Float, self.cdf, slot - 1, active & ~first))
-        return dr.select(active, dr.maximum(upper - lower, 0.0) * self.CELL_DENSITY, 0.0)
+        return dr.select(active, dr.maximum(upper - lower, 0.0) * CELL_DENSITY, 0.0)
 
 
 def _is_sky(sky: SkySampler, emitter) -> mi.Bool:
     return emitter == mi.EmitterPtr(sky.emitter)
 
 
-def _mixture_pdf(sky: SkySampler, ref, normal, d, env_pdf, active):
-    """Density of a sky sample (emitter choice included) for direction ``d``, given the
-    emitter's own density ``env_pdf`` (emitter choice included)."""
+def _mixture_pdf(sky: SkySampler, table_pdf, env_pdf):
+    """Density of a sky sample (emitter choice included), given the tables' density
+    ``table_pdf`` and the emitter's own ``env_pdf`` (emitter choice included)."""
     fraction = sky.product_fraction
-    return fraction * sky.pmf * sky.pdf(normal, d, active) + (1.0 - fraction) * env_pdf
+    return fraction * sky.pmf * table_pdf + (1.0 - fraction) * env_pdf
 
 
 def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, normal: mi.Vector3f,
@@ -301,9 +291,8 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
     surface normal ``normal`` (world space, on the side the light arrives from).
     ``ds.pdf`` is the density of the whole strategy (emitter choice included), as
     :func:`pdf_emitter_direction` gives it for a direction met by other means."""
-    from .emission import sample_emitter_direction as plain
     if sky is None:
-        return plain(scene, ref, sample, True, active)
+        return emission.sample_emitter_direction(scene, ref, sample, True, active)
     active = mi.Bool(active)
     sample = mi.Point2f(sample)
     index, weight, sample.x = choose_emitter(scene, sample.x, active)
@@ -320,7 +309,7 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
         spectrum *= weight
     # Sky lanes: the direction drawn from the tables where ``product``, the radiance
     # and the mixture's density for both kinds.
-    d, _ = sky.sample(normal, sample, product)
+    d, sampled_table_pdf = sky.sample(normal, sample, product)
     dist = dr.select(own, ds.dist, sky.distance)
     ds.d = dr.select(product, d, ds.d)
     ds.dist = dist
@@ -332,7 +321,8 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
     si.wi = -ds.d
     radiance = sky.emitter.eval(si, is_sky)
     env_pdf = dr.select(product, sky.pmf * sky.emitter.pdf_direction(ref, ds, product), ds.pdf)
-    pdf = _mixture_pdf(sky, ref, normal, ds.d, env_pdf, is_sky)
+    table_pdf = dr.select(product, sampled_table_pdf, sky.pdf(normal, ds.d, is_sky & ~product))
+    pdf = _mixture_pdf(sky, table_pdf, env_pdf)
     ds.pdf = dr.select(is_sky, pdf, ds.pdf)
     spectrum = dr.select(is_sky, radiance * dr.rcp(dr.maximum(pdf, 1e-30)), spectrum)
     ok = active & (ds.pdf != 0.0)
@@ -349,5 +339,5 @@ def pdf_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, ds: mi.D
     if sky is None:
         return pdf
     is_sky = mi.Bool(active) & _is_sky(sky, ds.emitter)
-    return dr.select(is_sky, _mixture_pdf(sky, ref, normal, ds.d, pdf, is_sky), pdf)
+    return dr.select(is_sky, _mixture_pdf(sky, sky.pdf(normal, ds.d, is_sky), pdf), pdf)
 
