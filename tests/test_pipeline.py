@@ -5,7 +5,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from pmic_integrator import gather, pipeline, streams
+from pmic_integrator import gather, photons, pipeline, streams
 from pmic_integrator.settings import Settings
 
 from scene_builders import SMALL_PMIC, cornell
@@ -141,6 +141,24 @@ def test_photon_seeds_keep_maps_and_batches_apart():
     seeds = {streams.photon_batch_seed(seed, batch, caustic)
              for seed in range(3) for batch in range(100) for caustic in (False, True)}
     assert len(seeds) == 600
+
+
+def test_no_photon_is_stored_on_the_dark_side_of_a_one_sided_surface():
+    """Two plates lit from below by a point light: the one-sided plate's underside
+    reflects nothing, the twosided one's does. Photons used to be stored on both (in a
+    room of thin walls lit through a window, 95 % of the map lay outside it)."""
+    grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}
+    plate = lambda x, bsdf: {"type": "rectangle", "bsdf": bsdf,  # noqa: E731 (facing +z)
+                             "to_world": mi.ScalarTransform4f().translate([x, 0, 0])}
+    scene = mi.load_dict({"type": "scene",
+                          "one_sided": plate(-1.5, grey),
+                          "two_sided": plate(1.5, {"type": "twosided", "bsdf": grey}),
+                          "light": {"type": "point", "position": [0, 0, -1],
+                                    "intensity": {"type": "rgb", "value": 1.0}}})
+    stored = photons.trace_photons(scene, photons.GLOBAL, 2000, -1, 0, 1 << 20, warn=False)
+    x = np.array(stored.position.x)
+    assert stored.count == 2000
+    assert (x > 0).all(), f"{int((x < 0).sum())} photons under the one-sided plate"
 
 
 def test_progress_writes_one_line_per_stage_to_a_log():

@@ -11,6 +11,8 @@ import drjit as dr
 import mitsuba as mi
 
 _GOLDEN = 0x9E3779B97F4A7C15
+#: The largest float32 below 1 (a sample in [0, 1) stays there after stretching).
+ONE_MINUS_EPSILON = 0.99999994
 
 
 def opaque_float(value: float) -> mi.Float:

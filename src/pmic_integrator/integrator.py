@@ -13,7 +13,7 @@ import mitsuba as mi
 from mitsuba.ad.integrators.common import mis_weight
 
 from . import cachefile, pipeline, streams
-from ._jit import shading_normal_on_side, surface_offset
+from ._jit import ONE_MINUS_EPSILON, shading_normal_on_side, surface_offset
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
 from .emission import sample_emitter_direction
 from . import skylight
@@ -56,8 +56,6 @@ GUIDE_FRACTION = 0.5
 #: seeds) for 1.5× the render time (rays into the cone that meet the shade's glossy
 #: outside go on bouncing).
 LIGHT_FRACTION = 0.25
-#: The largest float32 below 1 (a sample in [0, 1) stays there after stretching).
-ONE_MINUS_EPSILON = 0.99999994
 
 
 def _finite(value, active=True):

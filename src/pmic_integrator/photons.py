@@ -25,7 +25,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ._jit import concat, opaque_u32, rng as make_rng, shading_normal_on_side
-from .bsdfs import lobes_separable
+from .bsdfs import dark_side, lobes_separable
 from .emission import emission_sphere, sample_emitter_rays
 from .streams import photon_batch_seed
 
@@ -189,8 +189,12 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         bsdf = si.bsdf(ray)
         flags = bsdf.flags()
         has_diffuse = valid & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
-        # A new array: ``&=`` on Dr.Jit arrays is in place, and has_diffuse is read below.
-        store = mi.Bool(has_diffuse)
+        # Not on the dark side of a one-sided surface (the outside of a room of thin
+        # walls, lit by a sky): nothing there reflects, no lookup from the lit side
+        # accepts it, and it would take a share of the map, and records, for nothing.
+        # In a room lit through a window, 95 % of the photons were stored outside
+        # (its indirect light then came from 11k photons, not 122k).
+        store = has_diffuse & ~dark_side(bsdf, si, has_diffuse)
         if kind == CAUSTIC:
             store = store & specular_so_far & (bounce >= 2)
         # Orient the normal towards the side the photon arrived from, so that lookups

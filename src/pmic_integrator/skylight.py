@@ -31,6 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import emission
+from ._jit import ONE_MINUS_EPSILON
 from .emission import choose_emitter, emission_sphere, emitter_order, emitter_pmf
 
 # --- Internal tuning constants -------------------------------------------------------
@@ -300,7 +301,7 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
     fraction = sky.product_fraction
     product = is_sky & (sample.x < fraction)
     stretched = dr.select(product, sample.x / fraction, (sample.x - fraction) / (1.0 - fraction))
-    sample.x = dr.select(is_sky, dr.clip(stretched, 0.0, 0.99999994), sample.x)
+    sample.x = dr.select(is_sky, dr.clip(stretched, 0.0, ONE_MINUS_EPSILON), sample.x)
     own = active & ~product
     emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, own)
     ds, spectrum = emitter.sample_direction(ref, sample, own)
