@@ -204,3 +204,21 @@ def test_guiding_is_used_where_bounced_light_matters(name, pays):
     assert np.all(np.diff(guide, axis=1) >= 0) and np.all(np.isin(guide[:, -1], [0.0, 1.0]))
     if pays:
         assert np.mean(guide[:, -1] == 1.0) > 0.95
+
+
+@pytest.mark.parametrize("target, stride", [(20_000, 1), (200_000, 4)])
+def test_irradiance_is_precomputed_at_whole_even_paths_one_in_stride(target, stride):
+    """Half A (even light paths) gets the estimates, from half B (odd ones); of A, one
+    path in ``precompute_stride`` (4 for a 200k map, 1 where fewer than 2**14 photons
+    would remain)."""
+    from pmic_integrator import irradiance
+
+    scene = mi.load_dict(cornell())
+    stored = photons.trace_photons(scene, photons.GLOBAL, target, -1, 0, 1 << 24, warn=False)
+    even = int(dr.count((stored.path & 1) == 0)[0])
+    assert irradiance.precompute_stride(even) == stride
+    out = irradiance.precompute_irradiance(stored, 0.1, 64)  # (the box is 2 wide)
+    path = np.array(out.path)
+    assert (path % (2 * stride) == 0).all()
+    assert out.count == int(((np.array(stored.path) % (2 * stride)) == 0).sum())
+    assert np.isfinite(np.array(out.irradiance)).all() and np.array(out.irradiance).max() > 0

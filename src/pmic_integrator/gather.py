@@ -91,8 +91,8 @@ class GatherSource:
     #: No caustic map: gather rays count emitters met after delta/glossy bounces.
     caustics_by_gathering: bool = False
 
-    #: The full search reaches this many lookup radii: the precomputed photons are half
-    #: the map, and where light is sparse (a room lit through a door) the nearest one
+    #: The full search reaches this many lookup radii: the precomputed photons are a
+    #: fraction of the map (:func:`~pmic_integrator.irradiance.precompute_stride`), and where light is sparse (a room lit through a door) the nearest one
     #: is often beyond one radius. A ray that found none read zero: 10 % dark at
     #: lookup_size 8 in such a room.
     SEARCH_REACH = 4.0
@@ -100,7 +100,8 @@ class GatherSource:
     #: of path's mean, against 0.957 with steps 1-2 alone)...
     FAR_REACH = 16.0
     #: ...among the photons with at most this many in their near cell (a disc of one
-    #: radius holds ~lookup_size / 2 where the radius fits the density).
+    #: radius holds ~lookup_size / 2 photons of the map where the radius fits the density,
+    #: ~lookup_size / 8 or / 16 of the precomputed ones).
     SPARSE_CELL_PHOTONS = 2
 
     @staticmethod

@@ -15,6 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ._jit import opaque_u32
 from .hashgrid import PointGrid, PointGridPyramid, _next_pow2, cell_of, hash_cell
 from .photons import PhotonMap
 
@@ -47,6 +48,15 @@ CELL_SURFACE_FACES = 1.25
 DENSITY_QUANTILE = 0.3
 #: Photons sampled to find that quantile.
 DENSITY_SAMPLE = 1 << 16
+#: Irradiance is precomputed at one in PRECOMPUTE_STRIDE of half A's photons (as
+#: Christensen precomputes it at a fraction of the map), while at least
+#: MIN_PRECOMPUTED remain: an estimate spans ~per_estimate photons, so neighbouring
+#: photons' estimates share most of them, and a gather ray reading the nearest of a
+#: sparser set reads nearly the same value. Bundled scenes' relMSE and luminance were
+#: unchanged at strides 4 and 8 (1/8 and 1/16 of the map); the stage took half the
+#: time (lamp room 0.28 -> 0.13 s), and the gather source's grids shrank with it.
+PRECOMPUTE_STRIDE = 4
+MIN_PRECOMPUTED = 1 << 14
 
 
 def adapted_lookup_radius(positions: mi.Point3f, radius: float, per_estimate: int,
@@ -213,13 +223,20 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
     return estimate
 
 
+def precompute_stride(photons_a: int) -> int:
+    """One in how many of half A's ``photons_a`` photons get precomputed irradiance
+    (:data:`PRECOMPUTE_STRIDE`, fewer where that would leave under MIN_PRECOMPUTED)."""
+    return int(max(1, min(PRECOMPUTE_STRIDE, photons_a // MIN_PRECOMPUTED)))
+
+
 def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float,
                           max_depth: int | None = None) -> PhotonMap:
     """Irradiance at photons (stage 2 of the paper), free of the self-term bias.
 
-    The photons of even light paths (half A) get the irradiance estimated from the
-    photons of odd paths (half B), which are independent of them; A is returned with
-    ``irradiance`` filled in, for gather rays to read its nearest photon.
+    The photons of even light paths (half A; one in :func:`precompute_stride` of
+    their paths) get the irradiance estimated from the photons of odd paths (half B),
+    which are independent of them; A is returned with ``irradiance`` filled in, for
+    gather rays to read its nearest photon.
 
     Why not every photon estimated from the whole map, as Christensen (2000) does: a
     photon counting itself adds 3/(π r²) of its power, +3/k where k photons fall in
@@ -238,6 +255,9 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     half_a, half_b = photons.split_by_path()
     if half_a.count == 0 or half_b.count == 0 or half_b.paths_emitted == 0:
         return PhotonMap.empty()
+    stride = precompute_stride(half_a.count)
+    if stride > 1:  # whole paths of A (even path indices), as independent of B as A
+        half_a = half_a.select(dr.compress((half_a.path >> 1) % opaque_u32(stride) == 0))
     grid_b, order = PointGridPyramid.build(half_b.position, radius, 0.5 * per_estimate)
     half_b = half_b.select(order)
     scale = photons.paths_emitted / half_b.paths_emitted

@@ -402,7 +402,7 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
         skipped.append("precomputed irradiance: photon_map without final gathering never reads it")
     elif global_map.count:
         depth_limit = None if settings.max_depth == -1 else settings.max_depth - 2
-        # Gather rays read this copy (half the photons, see precompute_irradiance).
+        # Gather rays read this copy (a fraction of the photons, see precompute_irradiance).
         gather_source = GatherSource.build(
             precompute_irradiance(global_map, global_radius, settings.lookup_size, depth_limit),
             global_radius)
