@@ -139,9 +139,50 @@ def test_direct_light_from_a_sky_has_less_noise_in_renders():
         without, image_without = noise()
     finally:
         SkySampler.build = build
-    assert with_tables * 2 < without  # measured: 2.25×
+    # Measured: 1.46x (2.25x before the direct samples were stratified, which helps
+    # the envmap's own sampling of an unoccluded sky more than the tables).
+    assert with_tables * 1.25 < without
     for img in (image, image_without):
         assert np.mean(img) == pytest.approx(np.mean(ref), rel=0.01)
+
+
+def test_direct_samples_of_a_sun_and_sky_are_stratified(monkeypatch):
+    """A camera vertex's ``direct_samples`` emitter samples come from jittered strata
+    of the sample square, so the choice between the sun and the sky (and the sky's
+    directions) is stratified too. Direct light only (max_depth 2) in the walled
+    courtyard with a sun: the noise over render seeds, against the same samples
+    unstratified (measured: 1.5x less; 1.1x on the open ground, where less of the sky
+    is occluded), both unbiased against path."""
+    from pmic_integrator import integrator as integrator_module
+
+    scene = mi.load_dict(sb.courtyard(sun=True))
+    ref = np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": 2}), spp=512))
+
+    def noise():
+        integrator = mi.load_dict({"type": "pmic", "max_depth": 2})
+        images = np.array([mi.render(scene, integrator=integrator, spp=4, seed=s) for s in range(6)])
+        return float(np.mean(images.var(0) / (ref ** 2 + 1e-2))), images.mean(0)
+
+    stratified, image = noise()
+    monkeypatch.setattr(integrator_module, "jittered", lambda u, index, count: u)
+    independent, image_independent = noise()
+    assert stratified * 1.25 < independent
+    for img in (image, image_independent):
+        assert np.mean(img) == pytest.approx(np.mean(ref), rel=0.01)
+
+
+def test_jittered_strata_exactly():
+    from pmic_integrator._jit import jittered
+
+    u = mi.Point2f(0.5, 0.5)
+    centres = [jittered(u, mi.UInt32(k), 4) for k in range(4)]
+    assert [(float(c.x[0]), float(c.y[0])) for c in centres] == \
+        [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)]
+    corner = jittered(mi.Point2f(0.99999994, 0.99999994), mi.UInt32(8), 9)
+    assert float(corner.x[0]) < 1.0 and float(corner.y[0]) < 1.0
+    for count, index in ((5, 4), (1, 0)):  # beyond the square grid, or no grid: as given
+        out = jittered(mi.Point2f(0.3, 0.7), mi.UInt32(index), count)
+        assert (float(out.x[0]), float(out.y[0])) == pytest.approx((0.3, 0.7))
 
 
 @pytest.mark.parametrize("weights", [(1.0, 1.0), (1.0, 3.0)])

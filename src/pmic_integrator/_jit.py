@@ -7,6 +7,8 @@ one kernel serves every value.
 """
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 
@@ -93,3 +95,15 @@ def shading_normal_on_side(si: mi.SurfaceInteraction3f, n: mi.Vector3f) -> mi.Ve
     shading_n = dr.select(cosine < 0, -shading_n, shading_n)
     bent = (dr.abs(cosine) < FLAT_SHADING_COSINE) & dr.all(dr.isfinite(shading_n))
     return dr.select(bent, shading_n, n)
+
+
+def jittered(u: mi.Point2f, index: mi.UInt32, count: int) -> mi.Point2f:
+    """The uniform sample ``u`` moved into stratum ``index`` of a side × side grid over
+    [0, 1)² (side = ⌊√count⌋): jittered stratification of ``count`` samples numbered
+    ``index``. Samples numbered side² and beyond (``count`` not a square) keep ``u``."""
+    side = math.isqrt(count)
+    if side < 2:
+        return mi.Point2f(u)
+    cell = mi.Point2f(mi.Float(index % side), mi.Float(index // side))
+    moved = dr.minimum((cell + u) * (1.0 / side), ONE_MINUS_EPSILON)
+    return dr.select(index < side * side, moved, u)

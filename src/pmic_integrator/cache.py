@@ -25,7 +25,7 @@ import mitsuba as mi
 from . import streams
 from . import skylight
 from .gather import GatherSource, stratified_directions, trace_gather_rays
-from ._jit import (ONE_MINUS_EPSILON, concat, opaque_float, opaque_u32, rng as make_rng,
+from ._jit import (concat, jittered, opaque_float, opaque_u32, rng as make_rng,
                    segment_blocked, shading_normal_on_side, surface_offset)
 from .hashgrid import BallGrid, PointGrid
 from .lights import RecordLights
@@ -591,20 +591,6 @@ def guide_cdfs(owner: mi.UInt32, direction: mi.Vector3f, radiance: mi.Color3f, c
     return mi.Float(cdf.astype(np.float32).ravel())
 
 
-def _jittered_strata(lanes: int, samples: int, rng: mi.PCG32) -> mi.Point2f:
-    """2D samples for ``lanes`` = records × ``samples``: each record's first side²
-    samples (side = ⌊√samples⌋) jittered in a side × side grid over [0, 1)², the rest
-    (if ``samples`` is not a square) uniform."""
-    u = mi.Point2f(rng.next_float32(), rng.next_float32())
-    side = math.isqrt(samples)
-    if side < 2:
-        return u
-    within = dr.arange(mi.UInt32, lanes) % opaque_u32(samples)
-    cell = mi.Point2f(mi.Float(within % side), mi.Float(within // side))
-    jittered = dr.minimum((cell + u) * (1.0 / side), ONE_MINUS_EPSILON)
-    return dr.select(within < side * side, jittered, u)
-
-
 def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f, samples: int,
                       seed: int, offset: float, shading_normal: mi.Vector3f = None,
                       split: bool = False, sky=None):
@@ -627,7 +613,8 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
     ref.p = p + n * surface_offset(p, offset)
     ref.n = n
     rng = make_rng(lanes, seed, stream=streams.RECORD_DIRECT)
-    u = _jittered_strata(lanes, samples, rng)
+    within = dr.arange(mi.UInt32, lanes) % opaque_u32(samples)  # sample number
+    u = jittered(mi.Point2f(rng.next_float32(), rng.next_float32()), within, samples)
     ds, weight = skylight.sample_emitter_direction(scene, sky, ref, cos_n, u)
     e = weight * dr.maximum(dr.dot(ds.d, cos_n), 0.0)
     e = dr.select((ds.pdf > 0) & dr.all(dr.isfinite(e)), e, 0.0)

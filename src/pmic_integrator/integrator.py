@@ -13,7 +13,7 @@ import mitsuba as mi
 from mitsuba.ad.integrators.common import mis_weight
 
 from . import cachefile, pipeline, streams
-from ._jit import ONE_MINUS_EPSILON, shading_normal_on_side, surface_offset
+from ._jit import ONE_MINUS_EPSILON, jittered, shading_normal_on_side, surface_offset
 from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
 from .emission import sample_emitter_direction
 from . import skylight
@@ -190,8 +190,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
          - 4
          - Emitter samples (shadow rays) per camera vertex (1-64): shadow rays cost far less
            than camera samples (which also interpolate the cache), and direct light is
-           most of the noise left. An environment (``envmap``, ``constant``) is sampled
-           by its radiance times the cosine (:mod:`pmic_integrator.skylight`).
+           most of the noise left. They are drawn from jittered strata of the sample
+           square (the light chosen, and its directions, stratified). An environment
+           (``envmap``, ``constant``) is sampled by its radiance times the cosine
+           (:mod:`pmic_integrator.skylight`).
        * - ``seed``
          - integer
          - 0
@@ -726,9 +728,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
         sky = self._view.sky
         guided = guide_fraction is not None  # given only where the index guides
 
-        def one_sample(sampler):
-            ds, em_weight = skylight.sample_emitter_direction(scene, sky, si, normal, sampler.next_2d(),
-                                                              active)
+        def one_sample(sampler, k=0):
+            # Sample k of direct_samples, in its own jittered stratum of the square.
+            u = jittered(sampler.next_2d(), mi.UInt32(k), self.settings.direct_samples)
+            ds, em_weight = skylight.sample_emitter_direction(scene, sky, si, normal, u, active)
             ok = active & (ds.pdf != 0.0)
             wo = si.to_local(ds.d)
             f_diffuse, pdf_diffuse = bsdf.eval_pdf(ctx_diffuse, si, wo, ok & separable)
@@ -753,7 +756,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             return one_sample(sampler)
 
         def body(k, total, sampler):
-            return k + 1, total + one_sample(sampler), sampler
+            return k + 1, total + one_sample(sampler, k), sampler
 
         _, total, sampler = dr.while_loop(
             (dr.zeros(mi.UInt32, dr.width(si.p)), dr.zeros(mi.Spectrum, dr.width(si.p)), sampler),
