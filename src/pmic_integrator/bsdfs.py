@@ -62,18 +62,16 @@ def diffuse_response(bsdf, si: mi.SurfaceInteraction3f, active,
 
 
 def dark_side(bsdf, si: mi.SurfaceInteraction3f, active) -> mi.Bool:
-    """True where the diffuse lobe reflects nothing towards the side ``si.wi`` comes
-    from but does towards the other: the back of a one-sided surface (a thin wall of
-    ``diffuse`` rectangles, seen or lit from outside). A black texel reflects nothing
-    on either side and is not dark in this sense (its photons still count in the
-    density estimates of the texels beside it)."""
+    """True where light arrives at the back of the shading frame (``si.wi`` below it)
+    and the diffuse lobe reflects nothing towards that side: the back of a one-sided
+    surface (a thin wall of ``diffuse`` rectangles, seen or lit from outside). Not the
+    back of a ``twosided`` surface, nor a black texel on a front (whose photons still
+    count in the density estimates of the texels beside it). One evaluation, only for
+    light arriving from behind: a photon tracer's every hit asks."""
+    behind = mi.Bool(active) & (mi.Frame3f.cos_theta(si.wi) < 0)
     ctx_d = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.Diffuse), None)
-    side = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
-    here = dr.max(mi.Color3f(bsdf.eval(ctx_d, si, mi.Vector3f(0.0, 0.0, side), active)))
-    flipped = mi.SurfaceInteraction3f(si)
-    flipped.wi = mi.Vector3f(si.wi.x, si.wi.y, -si.wi.z)
-    there = dr.max(mi.Color3f(bsdf.eval(ctx_d, flipped, mi.Vector3f(0.0, 0.0, -side), active)))
-    return active & ~(here > 0) & (there > 0)
+    reflected = mi.Color3f(bsdf.eval(ctx_d, si, mi.Vector3f(0.0, 0.0, -1.0), behind))
+    return behind & ~(dr.max(reflected) > 0)
 
 
 def lobes_separable(bsdf, si: mi.SurfaceInteraction3f, active) -> mi.Bool:
