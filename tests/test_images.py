@@ -35,17 +35,17 @@ THRESHOLDS = {
                    "exterior_envmap": 7e-3, "interior_window": 0.12},
 }
 #: Mean luminance must be within this of the reference's: 1 % for pmic on the exterior
-#: (measured 0.9993 final gather), 2 % otherwise, and 3.5 % on interior_window, whose
-#: photon maps decide the whole room's bounced light. Over cache seeds 0-2 the final
-#: gather measured 0.999, 1.014, 0.985 and first-hit 1.026, 0.991, 0.988 (before the
-#: sun was kept out of the records: 1.016, 1.031, 1.002 and 1.029, 0.996, 0.995): the
-#: photons that bounce into the room set its second bounce (±1.5 %, seed to seed);
-#: and the sun shines through a glass sphere, a caustic that path (so the reference)
-#: cannot carry and the caustic map does.
-LUMINANCE_TOLERANCE = {("pmic", "exterior_envmap"): 0.01, ("pmic", "interior_window"): 0.035,
+#: (measured 0.9993 final gather), 2 % otherwise, and 2.5 % on interior_window, whose
+#: photon maps decide the whole room's bounced light. Over cache seeds 0-5 the final
+#: gather measured 1.009, 1.003, 0.987, 0.995, 0.996, 0.995 and first-hit 1.006, 1.009,
+#: 1.001, 1.005, 0.999, 0.995 (before photons on the dark side of its one-sided walls
+#: were left out, 95 % of the map lay outside the room: seeds 0-2 gave 0.999, 1.014,
+#: 0.985 and 1.026, 0.991, 0.988); and the sun shines through a glass sphere, a caustic
+#: that path (so the reference) cannot carry and the caustic map does.
+LUMINANCE_TOLERANCE = {("pmic", "exterior_envmap"): 0.01, ("pmic", "interior_window"): 0.025,
                        ("pmic_first_hit", "exterior_envmap"): 0.01,
-                       ("pmic_first_hit", "interior_window"): 0.035,
-                       ("irradiance_cache", "interior_window"): 0.035}
+                       ("pmic_first_hit", "interior_window"): 0.025,
+                       ("irradiance_cache", "interior_window"): 0.025}
 
 
 def render(name, spp=SPP, seed=0, **params):
