@@ -41,7 +41,7 @@ def test_photon_density_estimate_gives_analytic_irradiance():
     integrator = mi.load_dict({"type": "pmic", "global_photons": 200_000, "method": "photon_map"})
     mi.render(scene, integrator=integrator, spp=1)
     photons = integrator._prepared.global_map
-    assert photons.count == 200_000
+    assert 200_000 <= photons.count < 200_000 + 64  # whole paths
     radius = lookup_radius(4 * math.pi, photons.count, 64)
     grid = PointGrid.build(photons.position, radius)
     # Query at points that are not photons (an estimate at a photon counts itself).

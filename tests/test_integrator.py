@@ -23,7 +23,7 @@ def test_load_dict_and_render():
                 "time_precompute", "time_render", "records", "records_fallback",
                 "cache_builds", "time_cache"):
         assert key in stats, key
-    assert stats["photons_global"] == 20_000
+    assert 20_000 <= stats["photons_global"] < 20_000 + 64  # whole paths
     assert stats["photons_caustic"] == 0  # no specular surface: caustic map skipped
     assert any("caustic map" in s for s in stats["skipped"])
     assert stats["records"] > 0 and stats["cache_builds"] == 1
@@ -220,7 +220,7 @@ def test_every_emitter_type_traces_photons():
         image = np.array(mi.render(scene, spp=1))
         stats = scene.integrator().stats
         assert np.isfinite(image).all(), name
-        assert stats["photons_global"] == 5000, name
+        assert 5000 <= stats["photons_global"] < 5000 + 64, name  # whole paths
 
 
 def test_unusable_llvm_loaded_first_gives_one_clear_sentence():

@@ -23,7 +23,7 @@ def test_prepare_needs_no_camera_and_covers_every_photon():
     scene_dict.pop("sensor")
     scene = mi.load_dict(scene_dict)
     prepared = pipeline.prepare(scene, settings(estimator="first_hit"))
-    assert prepared.global_map.count == SMALL_PMIC["global_photons"]
+    assert 0 <= prepared.global_map.count - SMALL_PMIC["global_photons"] < 64  # whole paths
     assert prepared.index is not None and prepared.stats["records"] == prepared.index.records.count
     assert 0 < prepared.stats["records_probes"] < prepared.stats["records"]
     covered = prepared.index.covered(prepared.global_map.position, prepared.global_map.normal)
@@ -157,7 +157,7 @@ def test_no_photon_is_stored_on_the_dark_side_of_a_one_sided_surface():
                                     "intensity": {"type": "rgb", "value": 1.0}}})
     stored = photons.trace_photons(scene, photons.GLOBAL, 2000, -1, 0, 1 << 20, warn=False)
     x = np.array(stored.position.x)
-    assert stored.count == 2000
+    assert 2000 <= stored.count < 2000 + 64  # whole paths: the last may add a few
     assert (x > 0).all(), f"{int((x < 0).sum())} photons under the one-sided plate"
 
 
@@ -222,3 +222,21 @@ def test_irradiance_is_precomputed_at_whole_even_paths_one_in_stride(target, str
     assert (path % (2 * stride) == 0).all()
     assert out.count == int(((np.array(stored.path) % (2 * stride)) == 0).sum())
     assert np.isfinite(np.array(out.irradiance)).all() and np.array(out.irradiance).max() > 0
+
+
+def test_the_last_batch_keeps_the_path_that_reaches_the_target(monkeypatch):
+    """Whole paths are kept, and the last one may run past the target: keeping only
+    paths that fit entirely could keep none when a few photons were left, and in the
+    indirectly lit room (long paths) seed 0 then traced ten more 1024-path batches
+    (0.4 s) before one began with a path short enough."""
+    from pmic_integrator import scenes
+
+    scene = scenes.load_scene("indirect_room", resolution=32, spp=1)
+    calls = []
+    trace_batch = photons._trace_batch
+    monkeypatch.setattr(photons, "_trace_batch", lambda *a, **k: calls.append(a[3]) or trace_batch(*a, **k))
+    for seed in range(3):
+        calls.clear()
+        stored = photons.trace_photons(scene, photons.GLOBAL, 50_000, -1, seed, 1 << 24, warn=False)
+        assert 50_000 <= stored.count < 50_000 + photons.MAX_PHOTON_BOUNCES
+        assert len(calls) <= 2, f"seed {seed}: batches of {calls} paths"

@@ -29,4 +29,4 @@ def test_ten_million_photons_fit_and_render():
     integrator = mi.load_dict({"type": "pmic", "global_photons": 10_000_000, "caustic_photons": 0})
     image = np.array(mi.render(scene, integrator=integrator, spp=1))
     assert np.isfinite(image).all()
-    assert integrator.stats["photons_global"] == 10_000_000
+    assert 10_000_000 <= integrator.stats["photons_global"] < 10_000_000 + 64  # whole paths
