@@ -125,18 +125,12 @@ def test_direct_light_from_a_sky_has_less_noise_in_renders():
     of pmic's image (spread over render seeds) with the sky tables against without them
     (the same integrator with SkySampler.build disabled), both unbiased against path."""
     scene = _open_ground()
-    ref = np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": 2}), spp=512))
-
-    def noise():
-        integrator = mi.load_dict({"type": "pmic", "max_depth": 2})
-        images = np.array([mi.render(scene, integrator=integrator, spp=4, seed=s) for s in range(6)])
-        return float(np.mean(images.var(0) / (ref ** 2 + 1e-2))), images.mean(0)
-
-    with_tables, image = noise()
+    ref = _direct_reference(scene)
+    with_tables, image = _direct_noise(scene, ref)
     build = SkySampler.build
     try:
         SkySampler.build = staticmethod(lambda scene: None)
-        without, image_without = noise()
+        without, image_without = _direct_noise(scene, ref)
     finally:
         SkySampler.build = build
     # Measured: 1.46x (2.25x before the direct samples were stratified, which helps
@@ -144,6 +138,18 @@ def test_direct_light_from_a_sky_has_less_noise_in_renders():
     assert with_tables * 1.25 < without
     for img in (image, image_without):
         assert np.mean(img) == pytest.approx(np.mean(ref), rel=0.01)
+
+
+def _direct_reference(scene):
+    return np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": 2}), spp=512))
+
+
+def _direct_noise(scene, ref):
+    """Direct light only (max_depth 2): pmic's relative variance over six render
+    seeds at 4 spp, and its mean image."""
+    integrator = mi.load_dict({"type": "pmic", "max_depth": 2})
+    images = np.array([mi.render(scene, integrator=integrator, spp=4, seed=s) for s in range(6)])
+    return float(np.mean(images.var(0) / (ref ** 2 + 1e-2))), images.mean(0)
 
 
 def test_direct_samples_of_a_sun_and_sky_are_stratified(monkeypatch):
@@ -156,16 +162,10 @@ def test_direct_samples_of_a_sun_and_sky_are_stratified(monkeypatch):
     from pmic_integrator import integrator as integrator_module
 
     scene = mi.load_dict(sb.courtyard(sun=True))
-    ref = np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": 2}), spp=512))
-
-    def noise():
-        integrator = mi.load_dict({"type": "pmic", "max_depth": 2})
-        images = np.array([mi.render(scene, integrator=integrator, spp=4, seed=s) for s in range(6)])
-        return float(np.mean(images.var(0) / (ref ** 2 + 1e-2))), images.mean(0)
-
-    stratified, image = noise()
+    ref = _direct_reference(scene)
+    stratified, image = _direct_noise(scene, ref)
     monkeypatch.setattr(integrator_module, "jittered", lambda u, index, count: u)
-    independent, image_independent = noise()
+    independent, image_independent = _direct_noise(scene, ref)
     assert stratified * 1.25 < independent
     for img in (image, image_independent):
         assert np.mean(img) == pytest.approx(np.mean(ref), rel=0.01)
