@@ -92,9 +92,10 @@ class GatherSource:
     caustics_by_gathering: bool = False
 
     #: The full search reaches this many lookup radii: the precomputed photons are a
-    #: fraction of the map (:func:`~pmic_integrator.irradiance.precompute_stride`), and where light is sparse (a room lit through a door) the nearest one
-    #: is often beyond one radius. A ray that found none read zero: 10 % dark at
-    #: lookup_size 8 in such a room.
+    #: fraction of the map (:func:`~pmic_integrator.irradiance.precompute_stride`), and
+    #: where light is sparse (a room lit through a door) the nearest one is often
+    #: beyond one radius. A ray that found none read zero: 10 % dark at lookup_size 8
+    #: in such a room.
     SEARCH_REACH = 4.0
     #: Step 3 reaches this many lookup radii (16 made the lamp-shade room right: 1.003
     #: of path's mean, against 0.957 with steps 1-2 alone)...
