@@ -291,7 +291,10 @@ def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
     t0 = time.perf_counter()
     lookups = precompute(settings, info, global_map, caustic_map, skipped)
     dr.sync_thread()
-    progress.done("precomputed irradiance", f"{lookups['global_map'].count} photons")
+    source = lookups["gather_source"]
+    progress.done("precomputed irradiance",
+                  f"at {source.photons.count if source is not None else 0} of "
+                  f"{lookups['global_map'].count} photons")
     stats["time_precompute"] = time.perf_counter() - t0
     stats["lookup_radius"] = lookups["global_radius"]
     stats["caustic_radius"] = lookups["caustic_radius"]
