@@ -51,7 +51,7 @@ def diffuse_response(bsdf, si: mi.SurfaceInteraction3f, active,
     ``ctx`` (default: diffuse lobes only) selects the lobes averaged.
     """
     if ctx is None:
-        ctx = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.Diffuse), None)
+        ctx = diffuse_context()
     side = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
     total = dr.zeros(mi.Color3f, dr.width(si.p))
     directions = _response_directions(side)
@@ -69,8 +69,7 @@ def dark_side(bsdf, si: mi.SurfaceInteraction3f, active) -> mi.Bool:
     count in the density estimates of the texels beside it). One evaluation, only for
     light arriving from behind: a photon tracer's every hit asks."""
     behind = mi.Bool(active) & (mi.Frame3f.cos_theta(si.wi) < 0)
-    ctx_d = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.Diffuse), None)
-    reflected = mi.Color3f(bsdf.eval(ctx_d, si, mi.Vector3f(0.0, 0.0, -1.0), behind))
+    reflected = mi.Color3f(bsdf.eval(diffuse_context(), si, mi.Vector3f(0.0, 0.0, -1.0), behind))
     return behind & ~(dr.max(reflected) > 0)
 
 
@@ -80,11 +79,15 @@ def lobes_separable(bsdf, si: mi.SurfaceInteraction3f, active) -> mi.Bool:
     others, and the camera path treats the whole BSDF as one lobe."""
     side = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
     wo = mi.Vector3f(0.0, 0.0, side)
-    ctx_d = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.Diffuse), None)
-    f_d = dr.max(mi.Color3f(bsdf.eval(ctx_d, si, wo, active)))
+    f_d = dr.max(mi.Color3f(bsdf.eval(diffuse_context(), si, wo, active)))
     f_r = dr.max(mi.Color3f(bsdf.eval(non_diffuse_context(), si, wo, active)))
     f_all = dr.max(mi.Color3f(bsdf.eval(mi.BSDFContext(), si, wo, active)))
     return ~(active & (f_all > 0) & (f_d + f_r > MASK_IGNORED_RATIO * f_all))
+
+
+def diffuse_context(mode=mi.TransportMode.Radiance) -> mi.BSDFContext:
+    """A context that samples/evaluates the diffuse lobes only."""
+    return mi.BSDFContext(mode, int(mi.BSDFFlags.Diffuse), None)
 
 
 def non_diffuse_context(mode=mi.TransportMode.Radiance) -> mi.BSDFContext:

@@ -14,7 +14,7 @@ from mitsuba.ad.integrators.common import mis_weight
 
 from . import cachefile, pipeline, streams
 from ._jit import ONE_MINUS_EPSILON, jittered, shading_normal_on_side, surface_offset
-from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context
+from .bsdfs import diffuse_context, diffuse_response, lobes_separable, non_diffuse_context
 from .emission import sample_emitter_direction
 from . import skylight
 from .gather import trace_gather_rays
@@ -475,7 +475,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         want_caustic, want_coverage = "caustic" in aovs, "coverage" in aovs
         del prepared
         ctx_all = mi.BSDFContext()
-        ctx_diffuse = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.Diffuse), None)
+        ctx_diffuse = diffuse_context()
         ctx_rest = non_diffuse_context()
 
         ray = mi.Ray3f(dr.detach(ray))
