@@ -254,11 +254,11 @@ def check_environment_maps(scene: mi.Scene) -> None:
             continue
         data = np.asarray(params["data"])
         bad = ~np.isfinite(data.reshape(-1, data.shape[-1]) if data.ndim > 1 else data.reshape(-1, 1))
-        nan = int(bad.any(1).sum())
-        if nan:
+        bad_texels = int(bad.any(1).sum())
+        if bad_texels:
             name = emitter.id() or emitter.class_name()
-            raise ValueError(f"emitter {name!r} ({emitter.class_name()}): its image has {nan} NaN/Inf "
-                             f"texel{'s' if nan > 1 else ''}; an environment map must hold finite radiance "
+            raise ValueError(f"emitter {name!r} ({emitter.class_name()}): its image has {bad_texels} NaN/Inf "
+                             f"texel{'s' if bad_texels > 1 else ''}; an environment map must hold finite radiance "
                              f"(replace them, e.g. with numpy.nan_to_num, before loading)")
 
 
