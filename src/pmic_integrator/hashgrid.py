@@ -257,6 +257,20 @@ class PointGrid:
         return PointGrid(self.origin, self.cell_size, self.table_mask, self.cell_start, None,
                          self.positions, self.count, self.keys)
 
+    def spread_subset(self, per_bucket: int) -> mi.UInt32:
+        """Sorted positions of at most ``per_bucket`` entries of each hash bucket,
+        evenly spaced through it (every ⌈n / per_bucket⌉-th): a bucket's entries keep
+        the order they had (a spatially sorted map lists them cell by cell), so every
+        k-th spreads over the bucket instead of bunching in one corner of it."""
+        entry = dr.arange(mi.UInt32, self.count)
+        inv = dr.opaque(mi.Float, 1.0 / self.cell_size)
+        bucket = hash_cell(cell_of(self.positions, self.origin, inv),
+                           dr.opaque(mi.UInt32, self.table_mask))
+        start = dr.gather(mi.UInt32, self.cell_start, bucket)
+        size = dr.gather(mi.UInt32, self.cell_start, bucket + 1) - start
+        stride = dr.maximum((size + (per_bucket - 1)) // per_bucket, 1)
+        return dr.compress((entry - start) % stride == 0)
+
     def for_each_neighbor(self, query: mi.Point3f, radius, state: Any,
                           visit: Callable[[Any, mi.UInt32, mi.Float, mi.Bool], Any],
                           active=True, finished: Callable[[Any], mi.Bool] | None = None,
