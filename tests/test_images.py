@@ -24,9 +24,13 @@ CONFIGS = {
 #: The final gather's error is noise (it falls as 1/spp), first-hit's is mostly a
 #: floor of blotches. With guiding the final gather measured 1.5e-3 on cornell_box and
 #: 5.4e-3 on indirect_room (2.6e-3 and 1.7e-2 without: those thresholds fail then).
+#: exterior_envmap's is mostly fireflies: the sun's caustic off the plastic ball onto
+#: the ground, path-traced (too few caustic photons for a map). Which seed draws them
+#: decides: 3.0-4.7e-3 over render seeds 0-2; 1.1-2.1e-2 at 16 spp over seeds 0-7,
+#: mean 1.42e-2 with coat rays and 1.47e-2 without.
 THRESHOLDS = {
     "pmic": {"cornell_box": 2.2e-3, "cornell_caustics": 4e-3, "indirect_room": 8e-3,
-             "exterior_envmap": 4.5e-3, "interior_window": 1.2e-2},
+             "exterior_envmap": 5.5e-3, "interior_window": 1.2e-2},
     "pmic_first_hit": {"cornell_box": 2e-3, "cornell_caustics": 2e-3, "indirect_room": 2e-3,
                        "exterior_envmap": 5e-3, "interior_window": 1.2e-2},
     "irradiance_cache": {"cornell_box": 3e-3, "cornell_caustics": 3e-3, "indirect_room": 4e-3,

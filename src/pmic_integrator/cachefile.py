@@ -35,7 +35,9 @@ FORMAT = "pmic-cache"
 #: 8: photons know whether their path began at a delta light, precomputed photons
 #:    keep their irradiance without delta lights' direct light apart, and final-gather
 #:    records hold direct light from lights that are not delta only.
-VERSION = 8
+#: 9: gather sources search a spread subset of each wide cell (GatherSource.wide_grid);
+#:    scene info says whether some BSDF is a smooth coat (SceneInfo.has_delta_coat).
+VERSION = 9
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
