@@ -14,10 +14,16 @@ emission through ``scene.sample_emitter_ray`` are then too bright (and very nois
 :func:`sample_emitter_rays` is a drop-in replacement for ``scene.sample_emitter_ray``.
 For every *infinite* emitter (``envmap``, ``constant``, ``directional``) it samples the
 direction with the emitter's own ``sample_direction`` (which handles ``to_world``
-correctly and is what ``path`` uses) and puts the origin on a disk of the scene's
-bounding-sphere radius ``R`` that is perpendicular to the world-space direction, with
-weight ``(L / pdf(direction)) * pi R^2`` (for ``directional``: ``E * pi R^2``). Every
-other emitter (area, point, spot, ...) uses Mitsuba's own ``sample_ray`` unchanged.
+correctly and is what ``path`` uses) and puts the origin on the rectangle, perpendicular
+to the world-space direction, that bounds the projection of the scene's bounding box
+along it, behind the bounding sphere, with weight ``(L / pdf(direction)) * A`` (for
+``directional``: ``E * A``), ``A`` the rectangle's area. Every other emitter (area,
+point, spot, ...) uses Mitsuba's own ``sample_ray`` unchanged.
+
+Mitsuba shoots from the bounding sphere's disk (``pi R^2``), which any direction sees
+whole; the box's projection is smaller, the more so for flat scenes: in the material
+preview (a 12 m backdrop) 89 % of the disk's rays met nothing. Both are unbiased:
+every ray that can reach the geometry starts inside either.
 """
 from __future__ import annotations
 
@@ -26,7 +32,12 @@ import mitsuba as mi
 import numpy as np
 
 __all__ = ["sample_emitter_rays", "sample_emitter_direction", "choose_emitter", "emitter_order", "emitter_pmf",
-           "emission_sphere", "scene_bbox"]
+           "emission_sphere", "emission_bounds", "scene_bbox"]
+
+#: The rectangle that infinite emitters shoot from is widened by this fraction of the
+#: bounding sphere's radius on each side: rounding must not cut off a ray that would
+#: graze the box.
+RECTANGLE_MARGIN = 1e-4
 
 
 def scene_bbox(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
@@ -67,15 +78,36 @@ def emission_sphere(scene: mi.Scene) -> tuple[mi.ScalarPoint3f, float]:
     within 2 m of its centre (indirect light half of ``path``'s). Any sphere that
     contains the geometry gives an unbiased result.
     """
+    center, radius, _ = emission_bounds(scene)
+    return center, radius
+
+
+def emission_bounds(scene: mi.Scene) -> tuple:
+    """``(centre, radius, box)``: :func:`emission_sphere` and the box (a
+    ``ScalarBoundingBox3f``, or None for a scene without geometry) whose projection
+    infinite emitters shoot their rays across, from one pass over the meshes."""
     eps = float(mi.math.RayEpsilon)
     bbox = scene_bbox(scene)
-    if bbox.valid():
-        bsphere = bbox.bounding_sphere()
-        center = mi.ScalarPoint3f(bsphere.center)
-        radius = max(eps, float(bsphere.radius) * (1.0 + eps))
-    else:
-        center, radius = mi.ScalarPoint3f(0.0), eps
-    return center, radius
+    if not bbox.valid():
+        return mi.ScalarPoint3f(0.0), eps, None
+    bsphere = bbox.bounding_sphere()
+    return mi.ScalarPoint3f(bsphere.center), max(eps, float(bsphere.radius) * (1.0 + eps)), bbox
+
+
+def _box_rectangle(d: mi.Vector3f, center: mi.Point3f, radius: float, box):
+    """The frame (s, t) of ``d`` and the bounds of the box's projection on it,
+    relative to ``center``, widened by RECTANGLE_MARGIN: ``(s, t, s_lo, s_hi, t_lo, t_hi)``."""
+    frame = mi.Frame3f(d)
+    s_lo = t_lo = mi.Float(dr.inf)
+    s_hi = t_hi = mi.Float(-dr.inf)
+    for k in range(8):
+        corner = box.corner(k)
+        rel = mi.Vector3f(corner[0], corner[1], corner[2]) - center
+        ps, pt = dr.dot(frame.s, rel), dr.dot(frame.t, rel)
+        s_lo, s_hi = dr.minimum(s_lo, ps), dr.maximum(s_hi, ps)
+        t_lo, t_hi = dr.minimum(t_lo, pt), dr.maximum(t_hi, pt)
+    margin = RECTANGLE_MARGIN * radius
+    return frame.s, frame.t, s_lo - margin, s_hi + margin, t_lo - margin, t_hi + margin
 
 
 def emitter_order(scene: mi.Scene) -> list[int]:
@@ -173,12 +205,11 @@ def _finite(weight) -> mi.Bool:
 
 
 def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active=True,
-                        sphere: tuple | None = None):
+                        bounds: tuple | None = None):
     """Sample emitted rays; same meaning and return value as ``scene.sample_emitter_ray``.
 
-    ``sphere`` is :func:`emission_sphere`'s ``(centre, radius)`` for ``scene``, computed
-    here when not given (callers that sample in batches compute it once: it reads
-    every mesh's vertices).
+    ``bounds`` is :func:`emission_bounds` for ``scene``, computed here when not given
+    (callers that sample in batches compute it once: it reads every mesh's vertices).
 
     Returns ``(ray, weight, emitter)``: ``weight`` is the flux carried by the sample
     (emitted radiance over the spatio-directional density, including ``1/pmf`` of the
@@ -210,9 +241,10 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
     # Area / point / spot / ...: Mitsuba's own sample_ray (correct).
     ray_f, weight_f = emitter.sample_ray(time, sample1, sample2, sample3, finite_kind)
 
-    # Infinite emitters: direction from sample_direction, origin on a disk of radius R
-    # perpendicular to the *world-space* direction, placed outside the bounding sphere.
-    center, radius = emission_sphere(scene) if sphere is None else sphere
+    # Infinite emitters: direction from sample_direction, origin on the rectangle that
+    # bounds the box's projection, perpendicular to the *world-space* direction, placed
+    # outside the bounding sphere.
+    center, radius, box = emission_bounds(scene) if bounds is None else bounds
     center_v = mi.Point3f(center)
     it = dr.zeros(mi.Interaction3f, n)
     it.p = center_v
@@ -223,10 +255,16 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
         it.wavelengths = it.wavelengths + 550.0
     ds, dir_weight = emitter.sample_direction(it, sample3, infinite)
     d = -ds.d                                   # the ray travels away from the emitter
-    offset = mi.warp.square_to_uniform_disk_concentric(sample2)
-    perp = mi.Frame3f(d).to_world(mi.Vector3f(offset.x, offset.y, 0.0))
-    origin = center_v + (perp - d) * radius
-    area = dr.pi * radius * radius
+    if box is None:  # no geometry: the sphere's disk
+        offset = mi.warp.square_to_uniform_disk_concentric(sample2)
+        perp = mi.Frame3f(d).to_world(mi.Vector3f(offset.x, offset.y, 0.0))
+        origin = center_v + (perp - d) * radius
+        area = mi.Float(dr.pi * radius * radius)
+    else:
+        s, t, s_lo, s_hi, t_lo, t_hi = _box_rectangle(d, center_v, radius, box)
+        origin = center_v + s * dr.lerp(s_lo, s_hi, sample2.x) + t * dr.lerp(t_lo, t_hi, sample2.y) \
+            - d * radius
+        area = (s_hi - s_lo) * (t_hi - t_lo)
     if spectral:
         si = dr.zeros(mi.SurfaceInteraction3f, n)
         si.p, si.uv, si.time = origin, ds.uv, time

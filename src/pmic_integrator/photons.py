@@ -26,7 +26,7 @@ import mitsuba as mi
 
 from ._jit import concat, opaque_u32, rng as make_rng, shading_normal_on_side
 from .bsdfs import dark_side, lobes_separable
-from .emission import emission_sphere, sample_emitter_rays
+from .emission import emission_bounds, sample_emitter_rays
 from .streams import photon_batch_seed
 
 log = logging.getLogger("pmic")
@@ -163,16 +163,16 @@ def shading_normal_factors(si: mi.SurfaceInteraction3f, n: mi.Vector3f, to_light
 
 
 def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
-                 max_store_depth: int, sphere: tuple):
+                 max_store_depth: int, bounds: tuple):
     """Trace ``n_paths`` light paths; return photon arrays and their path indices.
-    ``sphere``: the scene's :func:`emission_sphere`."""
+    ``bounds``: the scene's :func:`emission_bounds`."""
     rng = make_rng(n_paths, seed, stream=first_path)
     path_id = dr.arange(mi.UInt32, n_paths) + opaque_u32(first_path)
     # Not scene.sample_emitter_ray: Mitsuba 3.9 places a rotated envmap's ray origins
     # on a disk tilted against the rays (too bright by up to 1.8x); see emission.py.
     ray, flux, emitter = sample_emitter_rays(
         scene, mi.Float(0.0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
-        mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True), sphere=sphere)
+        mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True), bounds=bounds)
     specular_so_far = dr.full(mi.Bool, True, n_paths)
     from_delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
@@ -271,12 +271,12 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     batch = 0
     batch_paths = min(FIRST_BATCH_PATHS, max(1024, 2 * target), max_paths)
     start = time.perf_counter()
-    sphere = emission_sphere(scene)  # once: every batch shoots from the same disk
+    bounds = emission_bounds(scene)  # once: every batch shoots from the same rectangles
     while stored < target and emitted < max_paths:
         batch_paths = int(min(batch_paths, max_paths - emitted))
         pos, nrm, pwr, dep, spec, path, delta = _trace_batch(
             scene, kind, emitted, batch_paths, photon_batch_seed(seed, batch, kind == CAUSTIC),
-            max_store_depth, sphere)
+            max_store_depth, bounds)
         got = dr.width(dep)
         remaining = target - stored
         used_paths = batch_paths
