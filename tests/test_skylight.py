@@ -97,6 +97,26 @@ def test_mixture_is_unbiased_and_far_less_noisy_than_the_emitters_own_sampling(n
     assert np.mean(~np.isclose(np.array(ds.pdf), np.array(again), rtol=1e-3)) < 1e-4
 
 
+@pytest.mark.parametrize("normal", [(0, 1, 0), (0.3, 0.95, 0.1), (0.5, 0.5, 0.7), (0.0, 0.2, 0.98)])
+def test_tables_follow_the_cosine_to_their_bins_centre(normal):
+    """A table follows the cosine to its bin's centre, not the cosine widened by the
+    bin's radius: few of its samples fall below a point's horizon (measured 0.1-0.4 %;
+    1.2-2.7 % widened), and one mixture sample of the sky's irradiance has a relative
+    variance of 0.14-0.18 (0.19-0.29 widened)."""
+    scene = _sky_scene()
+    sky = SkySampler.build(scene)
+    n = _normals(normal)
+    d, _ = sky.sample(n, _uniform(5))
+    below = float(dr.mean(mi.Float(dr.dot(d, n) <= 0))[0])
+    assert below < 0.006, below
+    ref = dr.zeros(mi.Interaction3f, LANES)
+    ref.p = mi.Point3f(0.0, 30.0, 0.0)  # above everything: nothing occludes
+    ref.n = n
+    ds, weight = skylight.sample_emitter_direction(scene, sky, ref, n, _uniform(3))
+    e = np.array(mi.luminance(mi.Color3f(weight)) * dr.maximum(dr.dot(ds.d, n), 0.0), np.float64)
+    assert e.var() / e.mean() ** 2 < 0.185
+
+
 def _open_ground():
     """A grey ground and two grey boxes under a constant sky, seen from above: the
     boxes' walls face half of the sky, the ground sees it all but where the boxes stand

@@ -41,9 +41,13 @@ SKY_SECTORS = 128
 #: Solid-angle density of a direction drawn uniformly within a cell: cells / 4π.
 CELL_DENSITY = SKY_BANDS * SKY_SECTORS / (4.0 * math.pi)
 #: Normal bins: an octahedral map of the sphere of normals, this many bins a side
-#: (bins ~15° wide). Each table uses the cosine widened by its bin's angular radius
-#: (the largest cosine of any normal in the bin), so no direction that lights a point
-#: is left out of its bin's table.
+#: (bins ~15° wide). Each table uses the cosine to its bin's centre (widened by the
+#: cell's own angular radius): a point whose normal lies off the centre meets a few
+#: directions near its horizon that its table leaves out, which the emitter's own
+#: sampling covers (unbiased). Widening by the bin's radius as well (so that no
+#: direction was left out) put up to 9 % of the table's samples below the horizon and
+#: oversampled the rest of it: the variance of one sky sample was 1.3-1.6× this one's,
+#: relMSE 9 % higher on the overcast courtyard and 8 % on the material preview.
 NORMAL_RES = 16
 NORMAL_BINS = NORMAL_RES * NORMAL_RES
 #: Radiance of a cell: the mean of this many × this many stratified evaluations.
@@ -121,9 +125,8 @@ def normal_bin(n: mi.Vector3f) -> mi.UInt32:
 def _tables_geometry():
     """What the tables share whatever the sky (computed once per process): the
     CELL_SAMPLES² stratified directions of every cell, and for each normal bin and cell
-    the cosine widened by the bin's and the cell's angular radii (the largest cosine
-    between any normal of the bin and any direction of the cell, so that no direction
-    lighting a point is left out of its bin's table)."""
+    the cosine between the bin's centre and the cell, widened by the cell's angular
+    radius (the largest cosine between the centre and any direction of the cell)."""
     cells = SKY_BANDS * SKY_SECTORS
     k = CELL_SAMPLES
     cell = np.repeat(np.arange(cells), k * k)
@@ -134,11 +137,6 @@ def _tables_geometry():
     centres_uv = np.stack(np.meshgrid((np.arange(res) + 0.5) / res, (np.arange(res) + 0.5) / res,
                                       indexing="ij"), -1).reshape(-1, 2)
     normals = _octahedral_inverse(centres_uv)
-    bin_radius = np.zeros(NORMAL_BINS)
-    for du in (-0.5, 0.5):
-        for dv in (-0.5, 0.5):
-            corner = _octahedral_inverse(np.clip(centres_uv + np.array([du, dv]) / res, 0.0, 1.0))
-            bin_radius = np.maximum(bin_radius, np.arccos(np.clip((corner * normals).sum(1), -1, 1)))
     cell_ids = np.arange(cells)
     band, sector = (cell_ids // SKY_SECTORS).astype(np.float64), (cell_ids % SKY_SECTORS).astype(np.float64)
     centres = _direction(band, sector, np.full(cells, 0.5), np.full(cells, 0.5), SKY_BANDS, SKY_SECTORS)
@@ -148,7 +146,7 @@ def _tables_geometry():
             corner = _direction(band, sector, np.full(cells, cu), np.full(cells, cv), SKY_BANDS, SKY_SECTORS)
             cell_radius = np.maximum(cell_radius, np.arccos(np.clip((corner * centres).sum(1), -1, 1)))
     angle = np.arccos(np.clip(normals @ centres.T, -1.0, 1.0))  # bins × cells
-    angle = np.maximum(angle - bin_radius[:, None] - cell_radius[None, :], 0.0)
+    angle = np.maximum(angle - cell_radius[None, :], 0.0)
     cosine = np.maximum(np.cos(angle), 0.0)
     directions.setflags(write=False)
     cosine.setflags(write=False)
