@@ -127,34 +127,37 @@ class GatherSource:
             return GatherSource(photons, PointGrid.build(mi.Point3f(), radius), radius)
         reach = radius * GatherSource.SEARCH_REACH
         coarse = PointGrid.build(photons.position, reach)
+        coarse_photons, coarse = photons.select(coarse.order), coarse.sorted_in_place()
         near = PointGrid.build(photons.position, radius)
         near_photons = photons.select(near.order)
         # Photons in each photon's near cell (near.positions is in near order).
         sparse = dr.compress(near.occupancy(near.positions) <= GatherSource.SPARSE_CELL_PHOTONS)
         far_photons = far_grid = None
         if dr.width(sparse):
-            far_photons, far_grid = GatherSource._spread_grid(
-                near_photons.select(sparse), radius * GatherSource.FAR_REACH)
+            far_photons = near_photons.select(sparse)
+            far = PointGrid.build(far_photons.position, radius * GatherSource.FAR_REACH)
+            far_photons, far_grid = GatherSource._spread(far_photons.select(far.order),
+                                                         far.sorted_in_place())
         mid = PointGrid.build(photons.position, 2.0 * radius)
-        wide_photons, wide_grid = GatherSource._spread_grid(photons, reach)
-        return GatherSource(photons.select(coarse.order), coarse.sorted_in_place(), reach,
+        # Step 4 searches the coarse grid itself where no cell needs thinning.
+        wide_photons, wide_grid = GatherSource._spread(coarse_photons, coarse)
+        return GatherSource(coarse_photons, coarse, reach,
                             near_photons, near.sorted_in_place(),
                             mid_photons=photons.select(mid.order), mid_grid=mid.sorted_in_place(),
                             far_photons=far_photons, far_grid=far_grid,
                             wide_photons=wide_photons, wide_grid=wide_grid)
 
     @staticmethod
-    def _spread_grid(photons: PhotonMap, cell: float):
-        """``(photons kept, their grid)``: a grid of edge ``cell`` over at most
-        ``WIDE_CELL_PHOTONS`` of ``photons`` per bucket, the kept photons in its order."""
-        grid = PointGrid.build(photons.position, cell)
-        kept = photons.select(grid.order)
+    def _spread(photons: PhotonMap, grid: PointGrid):
+        """``(photons, grid)`` (photons in the order of ``grid``, sorted in place) kept
+        to at most ``WIDE_CELL_PHOTONS`` per bucket: the same pair where none has more,
+        else the kept photons and a grid of the same edge rebuilt over them."""
         spread = grid.spread_subset(GatherSource.WIDE_CELL_PHOTONS)
-        if dr.width(spread) < photons.count:
-            kept = kept.select(spread)
-            grid = PointGrid.build(kept.position, cell)
-            kept = kept.select(grid.order)
-        return kept, grid.sorted_in_place()
+        if dr.width(spread) == photons.count:
+            return photons, grid
+        kept = photons.select(spread)
+        thin = PointGrid.build(kept.position, grid.cell_size)
+        return kept.select(thin.order), thin.sorted_in_place()
 
     def nbytes(self) -> int:
         """Bytes of the other photon copies and their grids (the first copy is the
@@ -163,7 +166,8 @@ class GatherSource:
             return 0
         far = 0 if self.far_grid is None else self.far_photons.nbytes() + self.far_grid.nbytes()
         mid = 0 if self.mid_grid is None else self.mid_photons.nbytes() + self.mid_grid.nbytes()
-        wide = 0 if self.wide_grid is None else self.wide_photons.nbytes() + self.wide_grid.nbytes()
+        wide = 0 if self.wide_grid is None or self.wide_grid is self.grid else \
+            self.wide_photons.nbytes() + self.wide_grid.nbytes()
         return self.near_photons.nbytes() + self.near_grid.nbytes() + mid + far + wide
 
     def _steps(self):
