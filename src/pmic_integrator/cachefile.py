@@ -37,7 +37,9 @@ FORMAT = "pmic-cache"
 #:    records hold direct light from lights that are not delta only.
 #: 9: gather sources search a spread subset of each wide cell (GatherSource.wide_grid);
 #:    scene info says whether some BSDF is a smooth coat (SceneInfo.has_delta_coat).
-VERSION = 9
+#: 10: grid pyramids pick a query's level from the densest cell its scan visits
+#:     (PointGridPyramid.level0_key): precomputed irradiance and estimates differ.
+VERSION = 10
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
