@@ -21,6 +21,13 @@ def opaque_float(value: float) -> mi.Float:
     return dr.opaque(mi.Float, float(value))
 
 
+def mean_value(values) -> float:
+    """The mean of a Dr.Jit array as a Python float. ``dr.mean`` multiplies by 1/width
+    as a constant: a kernel per width, and widths (records, photons) move with the seed."""
+    width = dr.width(values)
+    return float(dr.sum(values)[0]) / width if width else 0.0
+
+
 def opaque_u32(value: int) -> mi.UInt32:
     return dr.opaque(mi.UInt32, int(value) & 0xFFFFFFFF)
 

@@ -25,7 +25,7 @@ import mitsuba as mi
 from . import streams
 from . import skylight
 from .gather import GatherSource, stratified_directions, trace_gather_rays
-from ._jit import (concat, jittered, opaque_float, opaque_u32, rng as make_rng,
+from ._jit import (concat, jittered, mean_value, opaque_float, opaque_u32, rng as make_rng,
                    segment_blocked, shading_normal_on_side, surface_offset)
 from .hashgrid import BallGrid, PointGrid
 from .lights import RecordLights
@@ -665,7 +665,7 @@ class RecordIndex:
         (coverage is a yes/no test, whatever the cells; the interpolated sums follow
         the cells' order, so every rendered index is built with ``lookup``)."""
         def grid(reach):
-            cell = CELL_PER_REACH * float(dr.mean(reach)[0]) if records.count and lookup else None
+            cell = CELL_PER_REACH * mean_value(reach) if records.count and lookup else None
             return BallGrid.build(records.position, reach, cell_size=cell)
 
         reach = records.radius * max_error
@@ -800,8 +800,8 @@ class RecordIndex:
         direct = self.light_direct
         total = bounced if direct is None else bounced + mi.luminance(direct)
         share = dr.select(total > 0, bounced / dr.maximum(total, 1e-30), 0.0)
-        fraction = dr.mean(mi.Float(dr.select(share >= GUIDE_BOUNCED_SHARE, 1.0, 0.0)))
-        return float(fraction[0] if dr.width(fraction) else fraction) >= GUIDE_MIN_RECORDS
+        return mean_value(mi.Float(dr.select(share >= GUIDE_BOUNCED_SHARE, 1.0, 0.0))) \
+            >= GUIDE_MIN_RECORDS
 
     def guide_record(self, x: mi.Point3f, n: mi.Vector3f, active=True):
         """``(record, share)``: the first record in the grid cell of x that reaches

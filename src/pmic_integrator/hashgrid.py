@@ -26,7 +26,7 @@ from typing import Any, Callable
 import drjit as dr
 import mitsuba as mi
 
-from ._jit import concat, opaque_u32
+from ._jit import concat, mean_value, opaque_u32
 
 #: Cell coordinates are clamped to this range so that a far-away query cannot overflow
 #: the int32 cell arithmetic; entries never live there, so clamped cells find nothing.
@@ -263,7 +263,7 @@ class PointGrid:
                              dr.zeros(mi.UInt32, table_size + 1), mi.UInt32(),
                              mi.Point3f(), 0)
         inv = dr.opaque(mi.Float, 1.0 / cell_size)
-        bucket = hash_cell(cell_of(positions, origin, inv), table_size - 1)
+        bucket = hash_cell(cell_of(positions, origin, inv), opaque_u32(table_size - 1))
         cell_start, order = _bucket_sort(bucket, table_size)
         sorted_positions = dr.gather(mi.Point3f, positions, order)
         keys = cell_key(cell_of(sorted_positions, origin, inv))
@@ -385,7 +385,7 @@ class BallGrid:
         r_max = float(dr.max(radii)[0]) if dr.width(radii) > 0 else 0.0
         if cell_size is None:
             # The mean diameter keeps entries per ball near 8 for typical radii.
-            cell_size = 2.0 * float(dr.mean(radii)[0])
+            cell_size = 2.0 * mean_value(radii)
         cell_size = max(float(cell_size), 2.0 * r_max / BallGrid.MAX_SPAN, 1e-30)
         lo = centers - radii
         origin = mi.Point3f(dr.min(lo.x), dr.min(lo.y), dr.min(lo.z))
@@ -414,7 +414,7 @@ class BallGrid:
         li = mi.Int32(local)
         cell = dr.gather(mi.Vector3i, cmin, owner) + mi.Vector3i(li % sx, (li // sx) % sy, li // (sx * sy))
         table_size = _next_pow2(max(total, 1))
-        bucket = hash_cell(cell, table_size - 1)
+        bucket = hash_cell(cell, opaque_u32(table_size - 1))
         cell_start, order = _bucket_sort(bucket, table_size)
         ball = dr.gather(mi.UInt32, owner, order)
         sorted_cell = dr.gather(mi.Vector3i, cell, order)

@@ -12,7 +12,7 @@ import drjit as dr
 import mitsuba as mi
 from mitsuba.ad.integrators.common import mis_weight
 
-from . import cachefile, pipeline, streams
+from . import cachefile, camera, pipeline, streams
 from ._jit import ONE_MINUS_EPSILON, jittered, shading_normal_on_side, surface_offset
 from .bsdfs import diffuse_context, diffuse_response, lobes_separable, non_diffuse_context
 from .emission import sample_emitter_direction
@@ -341,14 +341,30 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
     def _render_camera_paths(self, scene, sensor, view: PreparedScene, seed, spp, develop,
                              evaluate):
-        """Stage 4: Mitsuba's sampling loop over ``sample()``, reading ``view``."""
+        """Stage 4: camera rays over the film (:mod:`.camera`), ``sample()`` for each,
+        reading ``view``, splatted into the film."""
         self._view = view
         self._fallback_counter = dr.zeros(mi.UInt32, 1)
         start = time.perf_counter()
+        film = sensor.film()
+        spp = spp or sensor.sampler().sample_count()
+        film.prepare(self.aov_names())
         self._thread.inside = True
         try:
-            image = mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
-            dr.eval(image)
+            for pass_index, pass_spp in enumerate(camera.pass_counts(film, spp)):
+                sampler = camera.seeded_sampler(
+                    sensor, streams.render_pass_seed(seed, pass_index), pass_spp)
+                ray, weight, position = camera.camera_rays(sensor, sampler)
+                radiance, valid, aovs = self.sample(scene, sampler, ray, None,
+                                                    mi.Bool(True))
+                block = film.create_block()
+                camera.splat(film, block, position, radiance * weight, valid, aovs,
+                             ray.wavelengths)
+                film.put_block(block)
+                del sampler, ray, weight, position, radiance, valid, aovs, block
+            image = film.develop() if develop else mi.TensorXf()
+            if evaluate:
+                dr.eval(image)
             dr.sync_thread()
         finally:
             # ``_view`` stays: an integrator wrapping this one (Mitsuba's ``aov``) calls
@@ -460,7 +476,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         reads_cache = self.settings.method != "photon_map"
         gather_first = self.settings.final_gather_camera
         records_hold_caustics = prepared.index is not None and prepared.index.holds_caustics
-        untrusted_radius = prepared.global_radius  # trust test where no record reaches
+        # (opaque: the photons set it, and a constant would make a kernel per seed)
+        untrusted_radius = dr.opaque(mi.Float, prepared.global_radius)  # where no record reaches
         # BSDF sampling of the diffuse lobe for direct light, combined with emitter
         # sampling by MIS: emitter sampling alone is noisy for large emitters (skies).
         diffuse_mis = prepared.info.has_infinite_emitter

@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ._jit import opaque_u32
+from ._jit import opaque_float, opaque_u32
 from .hashgrid import PointGrid, PointGridPyramid, _next_pow2, cell_of, hash_cell
 from .photons import PhotonMap
 
@@ -260,7 +260,8 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
         half_a = half_a.select(dr.compress((half_a.path >> 1) % opaque_u32(stride) == 0))
     grid_b, order = PointGridPyramid.build(half_b.position, radius, 0.5 * per_estimate)
     half_b = half_b.select(order)
-    scale = photons.paths_emitted / half_b.paths_emitted
+    # Opaque: it moves with the photon seed (a constant would compile a kernel per seed).
+    scale = opaque_float(photons.paths_emitted / half_b.paths_emitted)
     irradiance = estimate_irradiance(half_b, grid_b, half_a.position, half_a.normal,
                                      max_depth=max_depth) * scale
     half_a.irradiance = dr.select(dr.all(dr.isfinite(irradiance)), irradiance, 0.0)
@@ -283,6 +284,8 @@ def nearest_photon(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
     """
     lanes = dr.width(query_p)
     query_n = mi.Vector3f(query_n)
+    # Opaque: a radius measured from the photons must not be baked into the kernel.
+    radius = opaque_float(radius) if isinstance(radius, (int, float)) else radius
 
     def visit(state, index, dist2, valid, offset):
         best_d2, best = state

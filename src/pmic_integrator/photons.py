@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
-from ._jit import concat, opaque_u32, rng as make_rng, shading_normal_on_side
+from ._jit import concat, opaque_float, opaque_u32, rng as make_rng, shading_normal_on_side
 from .bsdfs import dark_side, lobes_separable
 from .emission import emission_bounds, sample_emitter_rays
 from .streams import photon_batch_seed
@@ -320,7 +320,8 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
         return out
     position = concat([p[0] for p in parts], mi.Point3f)
     normal = concat([p[1] for p in parts], mi.Vector3f)
-    power = concat([p[2] for p in parts], mi.Color3f) / float(emitted)
+    # Opaque: the path count moves with the seed (a constant: a kernel per seed).
+    power = concat([p[2] for p in parts], mi.Color3f) / opaque_float(emitted)
     depth = concat([p[3] for p in parts], mi.UInt32)
     specular = concat([p[4] for p in parts], mi.Bool)
     path = concat([p[5] for p in parts], mi.UInt32)

@@ -45,3 +45,14 @@ def render_rng(sampler: mi.Sampler, lanes: int) -> mi.PCG32:
     render seed (and the sample index), unlike a generator keyed by the scene seed."""
     state = mi.UInt64(mi.UInt32(sampler.next_1d() * 4294967040.0))
     return mi.PCG32(size=lanes, initstate=state, initseq=dr.arange(mi.UInt64, lanes))
+
+
+def render_pass_seed(seed, pass_index: int):
+    """The sampler seed of render pass ``pass_index`` (:func:`camera.pass_counts`: more
+    than one only past 2^32 camera samples): the render seed itself (an ``int`` or a
+    ``mi.UInt32``, as Mitsuba passes it) for the first, a hash of both after, so that
+    no pass repeats another render seed's numbers."""
+    if pass_index == 0:
+        return seed
+    v0, _ = mi.sample_tea_32(mi.UInt32(seed), mi.UInt32(pass_index))
+    return v0
