@@ -178,8 +178,11 @@ def _peaked_cells(emitter):
     cells = SKY_BANDS * SKY_SECTORS
     n = PEAK_PROBE_SAMPLES
     side = int(round(math.sqrt(n)))
-    i = np.arange(side * side)
-    u = mi.Point2f(mi.Float(((i // side) + 0.5) / side), mi.Float(((i % side) + 0.5) / side))
+    # Built in Dr.Jit, not from NumPy: an array that wraps NumPy's memory is aligned as
+    # NumPy allocated it, and Dr.Jit compiles a kernel per alignment (a cold cache then
+    # compiled the emitter's sampling again in a later render: 0.09 s).
+    i = dr.arange(mi.UInt32, side * side)
+    u = mi.Point2f((mi.Float(i // side) + 0.5) / side, (mi.Float(i % side) + 0.5) / side)
     ds, weight = emitter.sample_direction(dr.zeros(mi.Interaction3f, side * side), u)
     band, sector = _cell_of(ds.d, SKY_BANDS, SKY_SECTORS)
     cell = np.array(band * SKY_SECTORS + sector, dtype=np.int64)
