@@ -243,3 +243,29 @@ def courtyard(size=(48, 36), sun=True, sky=(0.4, 0.5, 0.7)):
         d["sun"] = {"type": "directional", "direction": [-0.5, 0.6, -0.8],
                     "irradiance": {"type": "rgb", "value": 3.0}}
     return d
+
+
+def window_room(size=(40, 30), sky=(0.5, 0.6, 0.8)):
+    """A 4 × 2.5 × 4 m room of one-sided walls lit only by a constant sky through a
+    1.2 × 0.8 m window in its front wall: seen from inside, the sky is a small part of
+    each point's hemisphere, so emitter samples drawn over the whole sky mostly meet
+    the walls."""
+    wall = _diffuse((0.7, 0.7, 0.7))
+
+    def panel(center, half, rot_axis, angle):
+        return {"type": "rectangle", "bsdf": wall,
+                "to_world": T().translate(list(center)).rotate(rot_axis, angle).scale([half[0], half[1], 1])}
+
+    d = {"type": "scene", "sky": {"type": "constant", "radiance": {"type": "rgb", "value": list(sky)}},
+         "floor": panel((0, 0, 0), (2, 2), [1, 0, 0], -90),
+         "ceiling": panel((0, 2.5, 0), (2, 2), [1, 0, 0], 90),
+         "back": panel((0, 1.25, -2), (2, 1.25), [0, 1, 0], 0),
+         "left": panel((-2, 1.25, 0), (2, 1.25), [0, 1, 0], 90),
+         "right": panel((2, 1.25, 0), (2, 1.25), [0, 1, 0], -90),
+         # front wall (z = 2, facing -z) round a window x in [-0.6, 0.6], y in [1.0, 1.8]
+         "front_below": panel((0, 0.5, 2), (2, 0.5), [0, 1, 0], 180),
+         "front_above": panel((0, 2.15, 2), (2, 0.35), [0, 1, 0], 180),
+         "front_left": panel((-1.3, 1.4, 2), (0.7, 0.4), [0, 1, 0], 180),
+         "front_right": panel((1.3, 1.4, 2), (0.7, 0.4), [0, 1, 0], 180),
+         "sensor": _sensor((1.2, 1.3, 1.5), (-0.8, 0.9, -2.0), 70, size)}
+    return d

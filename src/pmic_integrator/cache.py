@@ -73,6 +73,9 @@ GUIDE_BIN_SOLID_ANGLE = 4.0 * math.pi / GUIDE_BINS
 #: draw it from cost 37 % of the render for no gain.
 GUIDE_MIN_RECORDS = 0.25
 GUIDE_BOUNCED_SHARE = 0.25
+#: A record's guide holds the sky it saw (escaped_sky) only where at most this
+#: fraction of its gather rays left the scene: the sky seen through an opening.
+SKY_GUIDE_OPENNESS = 0.5
 #: Interpolation walks a query's grid cell in two passes: the first only tests which
 #: records reach the query (position, normal, radius) and keeps the first this many
 #: of them; the second reads those whole (irradiance, gradients, direct light) and
@@ -553,7 +556,8 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
         norm_r = dr.norm(grad_r[c])
         grad_r[c] = grad_r[c] * dr.minimum(1.0, limit_r / dr.maximum(norm_r, 1e-30))
     nearest = block_sum(distance, rays, op="min")
-    guide = guide_cdfs(owner, mi.Vector3f(frame.to_world(local)), radiance, count)
+    world = mi.Vector3f(frame.to_world(local))
+    guide = guide_cdfs(owner, world, radiance + escaped_sky(scene, world, distance, rays), count)
     records = CacheRecords(mi.Point3f(p), mi.Vector3f(n), mi.Float(radius), mi.Color3f(irradiance),
                            tuple(grad_t), tuple(grad_r), nearest, shading_n, guide)
     dr.eval(records.irradiance, *records.grad_t, *records.grad_r, records.obstacle)
@@ -570,6 +574,30 @@ def guide_bin(d: mi.Vector3f) -> mi.UInt32:
     phi = dr.select(phi < 0, phi + 2.0 * math.pi, phi)
     sector = mi.UInt32(dr.clip(phi * (GUIDE_SECTORS / (2.0 * math.pi)), 0.0, GUIDE_SECTORS - 1))
     return band * GUIDE_SECTORS + sector
+
+
+def escaped_sky(scene: mi.Scene, direction: mi.Vector3f, distance: mi.Float,
+                rays: int) -> mi.Color3f:
+    """The environment's radiance along the gather rays that left the scene (``distance``
+    infinite), 0 along the others, for records that see the sky through an opening
+    (at most SKY_GUIDE_OPENNESS of their ``rays`` rays left): what a record saw of the
+    sky. It goes into the record's guide only, not its irradiance (direct light is
+    sampled at the shading point): a continuation guided by it goes out through the
+    window a room is lit by, where the shading point's emitter samples, drawn over the
+    whole sky, mostly meet the walls (in a room lit through a window, direct light was
+    98 % of the noise). Under an open sky those samples do well, and the guide keeps to
+    the bounced light it was made for (the material preview: +2 % relMSE with it)."""
+    environment = scene.environment()
+    escaped = ~dr.isfinite(distance)
+    if environment is None or not dr.any(escaped):
+        return dr.zeros(mi.Color3f, dr.width(distance))
+    openness = block_sum(dr.select(escaped, 1.0, 0.0), rays) * (1.0 / rays)
+    owner = dr.arange(mi.UInt32, dr.width(distance)) // opaque_u32(rays)
+    escaped &= dr.gather(mi.Float, openness, owner) <= SKY_GUIDE_OPENNESS
+    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(distance))
+    si.wi = -direction
+    sky = mi.Color3f(environment.eval(si, escaped))
+    return dr.select(escaped & dr.all(dr.isfinite(sky)), sky, 0.0)
 
 
 def guide_cdfs(owner: mi.UInt32, direction: mi.Vector3f, radiance: mi.Color3f, count: int) -> mi.Float:
