@@ -245,27 +245,31 @@ def courtyard(size=(48, 36), sun=True, sky=(0.4, 0.5, 0.7)):
     return d
 
 
-def window_room(size=(40, 30), sky=(0.5, 0.6, 0.8)):
+def window_room(size=(40, 30), sky=(0.5, 0.6, 0.8), shared_material=False):
     """A 4 × 2.5 × 4 m room of one-sided walls lit only by a constant sky through a
     1.2 × 0.8 m window in its front wall: seen from inside, the sky is a small part of
     each point's hemisphere, so emitter samples drawn over the whole sky mostly meet
-    the walls."""
-    wall = _diffuse((0.7, 0.7, 0.7))
+    the walls. With ``shared_material`` the walls share one BSDF object, and Mitsuba
+    3.9 merges them into one mesh whose bounding box is invalid (``scene.bbox()``,
+    from which Mitsuba's environment emitters place their samples)."""
+    shared = _diffuse((0.7, 0.7, 0.7))
 
-    def panel(center, half, rot_axis, angle):
-        return {"type": "rectangle", "bsdf": wall,
+    def panel(center, half, rot_axis, angle, k):
+        # A material per wall unless shared (the tiny tint keeps them apart).
+        bsdf = shared if shared_material else _diffuse((0.7, 0.7, 0.7 - 1e-4 * k))
+        return {"type": "rectangle", "bsdf": bsdf,
                 "to_world": T().translate(list(center)).rotate(rot_axis, angle).scale([half[0], half[1], 1])}
 
     d = {"type": "scene", "sky": {"type": "constant", "radiance": {"type": "rgb", "value": list(sky)}},
-         "floor": panel((0, 0, 0), (2, 2), [1, 0, 0], -90),
-         "ceiling": panel((0, 2.5, 0), (2, 2), [1, 0, 0], 90),
-         "back": panel((0, 1.25, -2), (2, 1.25), [0, 1, 0], 0),
-         "left": panel((-2, 1.25, 0), (2, 1.25), [0, 1, 0], 90),
-         "right": panel((2, 1.25, 0), (2, 1.25), [0, 1, 0], -90),
+         "floor": panel((0, 0, 0), (2, 2), [1, 0, 0], -90, 0),
+         "ceiling": panel((0, 2.5, 0), (2, 2), [1, 0, 0], 90, 1),
+         "back": panel((0, 1.25, -2), (2, 1.25), [0, 1, 0], 0, 2),
+         "left": panel((-2, 1.25, 0), (2, 1.25), [0, 1, 0], 90, 3),
+         "right": panel((2, 1.25, 0), (2, 1.25), [0, 1, 0], -90, 4),
          # front wall (z = 2, facing -z) round a window x in [-0.6, 0.6], y in [1.0, 1.8]
-         "front_below": panel((0, 0.5, 2), (2, 0.5), [0, 1, 0], 180),
-         "front_above": panel((0, 2.15, 2), (2, 0.35), [0, 1, 0], 180),
-         "front_left": panel((-1.3, 1.4, 2), (0.7, 0.4), [0, 1, 0], 180),
-         "front_right": panel((1.3, 1.4, 2), (0.7, 0.4), [0, 1, 0], 180),
+         "front_below": panel((0, 0.5, 2), (2, 0.5), [0, 1, 0], 180, 5),
+         "front_above": panel((0, 2.15, 2), (2, 0.35), [0, 1, 0], 180, 6),
+         "front_left": panel((-1.3, 1.4, 2), (0.7, 0.4), [0, 1, 0], 180, 7),
+         "front_right": panel((1.3, 1.4, 2), (0.7, 0.4), [0, 1, 0], 180, 8),
          "sensor": _sensor((1.2, 1.3, 1.5), (-0.8, 0.9, -2.0), 70, size)}
     return d

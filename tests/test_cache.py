@@ -268,9 +268,11 @@ def test_record_direct_light_samples_are_stratified():
 
 def test_guides_hold_the_sky_seen_through_a_window_and_cut_its_noise(monkeypatch):
     """Gather rays that leave a room through its window put the sky's radiance into
-    their record's guide (not its irradiance): camera paths are then guided out through
-    the window, where emitter samples drawn over the whole sky mostly meet the walls.
-    Same mean, less noise in the direct light (98 % of the noise in a window-lit room)."""
+    their record's guide (not its irradiance) and into a sky-only guide: camera paths
+    are then guided out through the window, and half of the emitter samples of the sky
+    follow what the record saw, where samples drawn over the whole sky mostly meet the
+    walls. Same mean (drawing the two kinds by stratum instead of by coin made it 11 %
+    dark), less noise in the direct light (98 % of the noise in a window-lit room)."""
     from scene_builders import window_room
 
     scene = mi.load_dict(window_room(size=(64, 48)))
@@ -285,5 +287,5 @@ def test_guides_hold_the_sky_seen_through_a_window_and_cut_its_noise(monkeypatch
     monkeypatch.setattr(cache, "escaped_sky",
                         lambda scene, direction, distance, rays: dr.zeros(mi.Color3f, dr.width(distance)))
     noise_without, mean_without = direct_noise_and_mean()
-    assert noise_with < 0.9 * noise_without
+    assert noise_with < 0.7 * noise_without  # measured 0.45 (0.80 with the guided continuation alone)
     assert abs(mean_with / mean_without - 1) < 0.03

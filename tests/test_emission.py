@@ -114,3 +114,27 @@ def test_environment_rays_start_over_the_scenes_box_not_its_bounding_sphere():
     from_above = np.array(si.is_valid() & (ray.d.y < 0))
     flux = float(np.array(weight.x)[from_above].sum()) / n
     assert flux == pytest.approx(math.pi * 16.0, rel=0.02)
+
+
+def test_sky_shadow_rays_reach_past_a_roof_whatever_mitsubas_scene_box():
+    """Walls that share one material are merged by Mitsuba 3.9 into a mesh whose box is
+    invalid, and its environment emitters then place their samples 1.6 m away: shadow
+    rays of that length stopped short of a 2.5 m ceiling and lit the floor as if there
+    were no roof (Mitsuba's own path renders such a room too bright). pmic's shadow
+    rays towards infinite emitters are unbounded: the room renders the same merged or
+    not, and as path renders the unmerged one."""
+    import scene_builders as sb
+
+    merged = mi.load_dict(sb.window_room(size=(32, 24), shared_material=True))
+    apart = mi.load_dict(sb.window_room(size=(32, 24)))
+    assert not merged.bbox().valid() and apart.bbox().valid()
+    spec = {"type": "pmic", "max_depth": 2, "global_photons": 20_000}  # direct light only
+
+    def mean(scene, integrator, spp):
+        return float(np.array(mi.render(scene, integrator=mi.load_dict(integrator), spp=spp,
+                                         seed=1)).mean())
+
+    ours_merged, ours_apart = mean(merged, spec, 64), mean(apart, spec, 64)
+    path_apart = mean(apart, {"type": "path", "max_depth": 2}, 1024)
+    assert abs(ours_merged / ours_apart - 1) < 0.02
+    assert abs(ours_apart / path_apart - 1) < 0.03

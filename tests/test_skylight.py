@@ -245,3 +245,44 @@ def test_a_sun_finer_than_a_cell_is_left_to_the_envmaps_own_sampling(monkeypatch
     monkeypatch.setattr(SkySampler, "build", staticmethod(lambda scene: None))
     without, _ = _direct_noise(scene, ref, seeds=8)
     assert with_tables < 1.25 * without
+
+
+def test_emitter_samples_guided_by_a_records_sky_stay_unbiased_and_report_their_density():
+    """Half of the sky samples drawn from the sky a record saw (two bins here), the rest
+    by the tables: the same mean as the tables alone at an unoccluded point, and the
+    density the sample reports is what pdf_emitter_direction gives for its direction
+    (the MIS weight of a continuation that meets the sky there)."""
+    from pmic_integrator.cache import CacheRecords, RecordIndex, guide_cdfs
+
+    scene = _sky_scene()
+    sky = SkySampler.build(scene)
+    n = _normals((0.0, 1.0, 0.0))
+    ref = dr.zeros(mi.Interaction3f, LANES)
+    ref.p = mi.Point3f(0.0, 30.0, 0.0)
+    ref.n = n
+    # One record whose gather saw the sky in two directions (weights 1 and 3).
+    seen = np.array([[0.0, 1.0, 0.0], [0.6, 0.8, 0.0]], dtype=np.float32)
+    sky_guide = guide_cdfs(mi.UInt32([0, 0]), mi.Vector3f(*seen.T), mi.Color3f([1.0, 3.0], [1.0, 3.0],
+                                                                              [1.0, 3.0]), 1)
+    z = mi.Vector3f([0.0], [0.0], [0.0])
+    records = CacheRecords(mi.Point3f([0.0], [30.0], [0.0]), mi.Vector3f([0.0], [1.0], [0.0]),
+                           mi.Float([1.0]), mi.Color3f([0.3], [0.3], [0.3]), (z,) * 3, (z,) * 3,
+                           guide=sky_guide, sky_guide=sky_guide)
+    index = RecordIndex.build(records, 0.5)
+    assert index.sky_guiding_pays()
+    guide = skylight.SkyGuide(index, dr.zeros(mi.UInt32, LANES), dr.full(mi.Float, 0.5, LANES))
+    coin = mi.Float(np.random.default_rng(7).random(LANES).astype(np.float32))
+    estimates = []
+    for g, u in ((guide, coin), (None, None)):
+        ds, weight = skylight.sample_emitter_direction(scene, sky, ref, n, _uniform(5), True, g, u)
+        estimates.append(np.array(mi.luminance(mi.Color3f(weight)) * dr.maximum(dr.dot(ds.d, n), 0.0),
+                                  np.float64))
+        if g is not None:
+            again = skylight.pdf_emitter_direction(scene, sky, ref, ds, n, True, g)
+            assert np.mean(~np.isclose(np.array(ds.pdf), np.array(again), rtol=1e-3)) < 1e-4
+            # Half of them came from the record's two bins.
+            bins = np.array(mi.Float(index.guide_pdf(dr.zeros(mi.UInt32, LANES), ds.d, True, sky=True)) > 0)
+            assert 0.5 < bins.mean() < 0.6
+    guided, tables = estimates
+    sigma = math.sqrt(guided.var() / LANES + tables.var() / LANES)
+    assert guided.mean() == pytest.approx(tables.mean(), abs=5 * sigma)

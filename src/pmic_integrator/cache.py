@@ -105,6 +105,9 @@ class CacheRecords:
     #: GUIDE_BINS cumulative probabilities per record, record-major; a record whose
     #: gather found no light has zeros (it guides nothing). None: not computed.
     guide: mi.Float = None
+    #: The same over the sky its gather rays saw leave the scene (:func:`escaped_sky`),
+    #: zeros where they saw none: a density for emitter samples of the sky.
+    sky_guide: mi.Float = None
 
     @property
     def count(self) -> int:
@@ -139,6 +142,10 @@ class CacheRecords:
         if self.guide is not None or other.guide is not None:
             bins = lambda r: r.guide if r.guide is not None else dr.zeros(mi.Float, r.count * GUIDE_BINS)  # noqa: E731
             guide = concat([bins(self), bins(other)], mi.Float)
+        sky_guide = None
+        if self.sky_guide is not None or other.sky_guide is not None:
+            sky = lambda r: r.sky_guide if r.sky_guide is not None else dr.zeros(mi.Float, r.count * GUIDE_BINS)  # noqa: E731
+            sky_guide = concat([sky(self), sky(other)], mi.Float)
         return CacheRecords(
             concat([self.position, other.position], mi.Point3f),
             concat([self.normal, other.normal], mi.Vector3f),
@@ -146,12 +153,13 @@ class CacheRecords:
             concat([self.irradiance, other.irradiance], mi.Color3f),
             tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_t, other.grad_t)),
             tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_r, other.grad_r)),
-            obstacle, shading_normal, guide)
+            obstacle, shading_normal, guide, sky_guide)
 
     def nbytes(self) -> int:
         return 4 * (3 + 3 + 1 + 3 + 18 + (self.obstacle is not None)
                     + 3 * (self.shading_normal is not None)
-                    + GUIDE_BINS * (self.guide is not None)) * self.count
+                    + GUIDE_BINS * (self.guide is not None)
+                    + GUIDE_BINS * (self.sky_guide is not None)) * self.count
 
 
 def block_sum(values, block: int, op: str = "sum"):
@@ -557,9 +565,12 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
         grad_r[c] = grad_r[c] * dr.minimum(1.0, limit_r / dr.maximum(norm_r, 1e-30))
     nearest = block_sum(distance, rays, op="min")
     world = mi.Vector3f(frame.to_world(local))
-    guide = guide_cdfs(owner, world, radiance + escaped_sky(scene, world, distance, rays), count)
+    sky = escaped_sky(scene, world, distance, rays)
+    guide = guide_cdfs(owner, world, radiance + sky, count)
+    sky_guide = guide_cdfs(owner, world, sky, count) if scene.environment() is not None else None
     records = CacheRecords(mi.Point3f(p), mi.Vector3f(n), mi.Float(radius), mi.Color3f(irradiance),
-                           tuple(grad_t), tuple(grad_r), nearest, shading_n, guide)
+                           tuple(grad_t), tuple(grad_r), nearest, shading_n, guide,
+                           sky_guide=sky_guide)
     dr.eval(records.irradiance, *records.grad_t, *records.grad_r, records.obstacle)
     return records
 
@@ -819,6 +830,20 @@ class RecordIndex:
         """The records carry directional distributions (:meth:`guide_record`)."""
         return self.records.guide is not None and self.records.count > 0
 
+    def sky_guiding_pays(self) -> bool:
+        """Did any record see the sky through an opening (:func:`escaped_sky`)? Then
+        emitter samples of the sky at the points they guide may follow what it saw."""
+        sky = self.records.sky_guide
+        if sky is None or self.records.count == 0:
+            return False
+        last = dr.arange(mi.UInt32, self.records.count) * GUIDE_BINS + (GUIDE_BINS - 1)
+        return bool(dr.any(dr.gather(mi.Float, sky, last) > 0))
+
+    def sees_sky(self, record: mi.UInt32, active=True) -> mi.Bool:
+        """Whether ``record``'s gather saw the sky through an opening."""
+        return dr.gather(mi.Float, self.records.sky_guide, record * GUIDE_BINS + (GUIDE_BINS - 1),
+                         active) > 0
+
     def guiding_pays(self) -> bool:
         """Do enough records owe enough of their light to bounces for guiding to be
         worth its lookups (:data:`GUIDE_MIN_RECORDS`)? A function of the cache only."""
@@ -872,11 +897,12 @@ class RecordIndex:
         share = dr.select(found & (total > 0), dr.clip(bounced / dr.maximum(total, 1e-30), 0.0, 1.0), 0.0)
         return best, share
 
-    def sample_guide(self, record: mi.UInt32, u: mi.Point2f, active=True) -> mi.Vector3f:
-        """A world-space direction from ``record``'s distribution: a bin by its
-        probability (a binary search of the cumulative table), then uniformly within
-        the bin's area on the sphere."""
-        cdf = self.records.guide
+    def sample_guide(self, record: mi.UInt32, u: mi.Point2f, active=True,
+                     sky: bool = False) -> mi.Vector3f:
+        """A world-space direction from ``record``'s distribution (``sky``: of the sky
+        it saw): a bin by its probability (a binary search of the cumulative table),
+        then uniformly within the bin's area on the sphere."""
+        cdf = self.records.sky_guide if sky else self.records.guide
         start = record * GUIDE_BINS
         below = dr.zeros(mi.UInt32, dr.width(record))  # bins whose cumulative value < u.x
         step = GUIDE_BINS // 2
@@ -895,9 +921,10 @@ class RecordIndex:
         sp, cp = dr.sincos(phi)
         return mi.Vector3f(sin_t * cp, sin_t * sp, z)
 
-    def guide_pdf(self, record: mi.UInt32, d: mi.Vector3f, active=True) -> mi.Float:
+    def guide_pdf(self, record: mi.UInt32, d: mi.Vector3f, active=True,
+                  sky: bool = False) -> mi.Float:
         """Solid-angle density of :meth:`sample_guide` at world direction ``d``."""
-        cdf = self.records.guide
+        cdf = self.records.sky_guide if sky else self.records.guide
         b = guide_bin(d)
         slot = record * GUIDE_BINS + b
         upper = dr.gather(mi.Float, cdf, slot, active)

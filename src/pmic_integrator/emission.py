@@ -191,9 +191,29 @@ def sample_emitter_direction(scene: mi.Scene, ref, sample: mi.Point2f, test_visi
         spectrum *= weight
     active &= ds.pdf != 0.0
     if test_visibility:
-        blocked = scene.ray_test(ref.spawn_ray_to(ds.p), active)
+        blocked = scene.ray_test(shadow_ray(ref, ds), active)
         spectrum = dr.select(blocked, 0.0, spectrum)
     return ds, spectrum
+
+
+def shadow_ray(ref, ds: mi.DirectionSample3f) -> mi.Ray3f:
+    """The visibility ray of an emitter sample: to the sampled point, or, for an
+    infinite emitter (an environment, a directional sun), unbounded along its direction.
+
+    Mitsuba places an infinite emitter's sample at twice the radius of the scene's
+    bounding sphere, and takes that sphere from ``scene.bbox()``, which Mitsuba 3.9
+    leaves invalid or too small when it merges shapes of one material loaded with
+    ``load_dict`` (see :func:`scene_bbox`): in a room of such walls the sky's shadow
+    rays stopped 1.6 m out, short of the 2.5 m ceiling, and lit the floor as if
+    there were no roof (Mitsuba's own ``path`` does this too)."""
+    to_point = ref.spawn_ray_to(ds.p)
+    along = ref.spawn_ray(ds.d)
+    infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
+    ray = mi.Ray3f(to_point)
+    ray.o = dr.select(infinite, along.o, to_point.o)
+    ray.d = dr.select(infinite, along.d, to_point.d)
+    ray.maxt = dr.select(infinite, along.maxt, to_point.maxt)
+    return ray
 
 
 def _finite(weight) -> mi.Bool:

@@ -56,6 +56,12 @@ GUIDE_FRACTION = 0.5
 #: seeds) for 1.5× the render time (rays into the cone that meet the shade's glossy
 #: outside go on bouncing).
 LIGHT_FRACTION = 0.25
+#: ...and where that record saw the sky through an opening (a window), this fraction
+#: of the vertex's emitter samples of the sky follow the sky it saw (a coin per
+#: sample), the rest the whole sky's tables, all weighted by the mixture's density (as
+#: are the continuation's emitter hits there). The tables' samples mostly meet the
+#: walls of a room lit through a window.
+SKY_EMITTER_FRACTION = 0.5
 
 
 def _finite(value, active=True):
@@ -485,6 +491,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         coat_rays = prepared.info.has_delta_coat
         guiding = gather_first and self.settings.guiding and prepared.index is not None and \
             prepared.index.guiding_pays()
+        sky_guided = guiding and prepared.sky is not None and prepared.index.sky_guiding_pays()
         lit = gather_first and self.settings.guiding and prepared.index is not None and \
             prepared.index.lights is not None
         n_em = float(self.settings.direct_samples)
@@ -513,6 +520,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
         prev_bsdf_pdf = mi.Float(1.0)
         prev_bsdf_delta = mi.Bool(True)
         prev_normal = mi.Vector3f(0.0, 0.0, 1.0)  #: shading normal of prev_si, on its lit side
+        #: The record whose sky prev_si's emitter samples followed, and how often (0: never).
+        prev_sky_record = mi.UInt32(0)
+        prev_sky_fraction = mi.Float(0.0)
         valid = mi.Bool(False)
         traced = mi.UInt32(0)  #: diffuse vertices path-traced so far (final gather)
         # ``armed``: the last traced diffuse vertex read the caustic map and every vertex
@@ -542,7 +552,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
             # ---- Emission reached by BSDF sampling (MIS with emitter sampling) ----
             ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
-            em_pdf = self._emitter_pdf(scene, prev_si, ds, prev_normal, ~prev_bsdf_delta)
+            em_pdf = self._emitter_pdf(scene, prev_si, ds, prev_normal, ~prev_bsdf_delta,
+                                       prev_sky_record, prev_sky_fraction if sky_guided else None)
             mis = dr.select(prev_bsdf_delta, 1.0, mis_weight(prev_bsdf_pdf, n_em * em_pdf))
             shown = active & ~crossed & ~coat_counted
             if dr.hint(hide_emitters, mode="scalar"):
@@ -581,6 +592,11 @@ class PMICIntegrator(mi.SamplingIntegrator):
             if dr.hint(guiding, mode="scalar"):
                 guide_record, bounced_share = self._view.index.guide_record(si.p, n, traced_here & active_next)
                 guide_fraction = GUIDE_FRACTION * bounced_share
+            sky_fraction = mi.Float(0.0)
+            if dr.hint(sky_guided, mode="scalar"):
+                sees = self._view.index.sees_sky(guide_record, traced_here & (guide_fraction > 0))
+                sky_fraction = dr.select(traced_here & active_next & (guide_fraction > 0) & sees,
+                                         SKY_EMITTER_FRACTION, 0.0)
             # ...and part towards the bright records that face it.
             light_total = mi.Float(0.0)
             light_fraction = mi.Float(0.0)
@@ -602,7 +618,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
             direct = β * self._direct_light(scene, sampler, si, shading_n, bsdf, active_em, separable,
                                             traced_here, armed, from_records,
                                             diffuse_mis, ctx_all, ctx_diffuse, ctx_rest,
-                                            guide_record, guide_fraction if guiding else None)
+                                            guide_record, guide_fraction if guiding else None,
+                                            sky_fraction if sky_guided else None)
 
             # ---- Direct light on the diffuse lobe by BSDF sampling (MIS) ----
             if dr.hint(diffuse_mis, mode="scalar"):
@@ -699,6 +716,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
             prev_bsdf_pdf = mis_pdf
             prev_bsdf_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             prev_normal = mi.Vector3f(shading_n)
+            prev_sky_record = mi.UInt32(guide_record)
+            prev_sky_fraction = mi.Float(sky_fraction)
             ray = si.spawn_ray(si.to_world(bs.wo))
 
             # Russian roulette, as Mitsuba's path tracers (η² keeps it unitless).
@@ -731,14 +750,17 @@ class PMICIntegrator(mi.SamplingIntegrator):
         guides["normal"] = dr.select(hit, si.sh_frame.n, 0.0)
         return guides
 
-    def _emitter_pdf(self, scene, ref, ds, normal, active):
+    def _emitter_pdf(self, scene, ref, ds, normal, active, sky_record=None, sky_fraction=None):
         """Density of the emitter samples of :meth:`_direct_light` at ``ref`` (shading
-        normal ``normal``) for the emitter direction ``ds`` (MIS)."""
-        return skylight.pdf_emitter_direction(scene, self._view.sky, ref, ds, normal, active)
+        normal ``normal``; ``sky_record``, ``sky_fraction``: the sky guide they followed)
+        for the emitter direction ``ds`` (MIS)."""
+        guide = None if sky_fraction is None else \
+            skylight.SkyGuide(self._view.index, sky_record, sky_fraction)
+        return skylight.pdf_emitter_direction(scene, self._view.sky, ref, ds, normal, active, guide)
 
     def _direct_light(self, scene, sampler, si, normal, bsdf, active, separable, traced, armed,
                       no_diffuse, diffuse_mis, ctx_all, ctx_diffuse, ctx_rest,
-                      guide_record=None, guide_fraction=None):
+                      guide_record=None, guide_fraction=None, sky_fraction=None):
         """Mean of ``direct_samples`` emitter samples (shadow rays) at ``si``.
 
         Separable BSDFs: the diffuse lobe takes emitter samples alone (or shares them by
@@ -749,7 +771,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
         where ``no_diffuse``, the diffuse lobe is (the cache holds its direct light).
         Where ``guide_fraction`` > 0 the MIS weights use the continuation's guided
         mixture density (:meth:`_mixed_continuation`: without its bright-record
-        strategy, as the continuation's own emitter hits do).
+        strategy, as the continuation's own emitter hits do). Where ``sky_fraction`` >
+        0, every other sample of the sky follows the sky ``guide_record`` saw
+        (:data:`SKY_EMITTER_FRACTION`).
         """
         n_em = float(self.settings.direct_samples)
         index = self._view.index
@@ -759,7 +783,15 @@ class PMICIntegrator(mi.SamplingIntegrator):
         def one_sample(sampler, k=0):
             # Sample k of direct_samples, in its own jittered stratum of the square.
             u = jittered(sampler.next_2d(), mi.UInt32(k), self.settings.direct_samples)
-            ds, em_weight = skylight.sample_emitter_direction(scene, sky, si, normal, u, active)
+            sky_guide, u_guide = None, None
+            if sky_fraction is not None:
+                sky_guide = skylight.SkyGuide(index, guide_record, sky_fraction)
+                # A coin per sample, independent of its stratum: assigning strategies by
+                # stratum (every other sample) would give each strategy only part of
+                # the square (11 % too dark in a window-lit room).
+                u_guide = sampler.next_1d()
+            ds, em_weight = skylight.sample_emitter_direction(scene, sky, si, normal, u, active,
+                                                              sky_guide, u_guide)
             ok = active & (ds.pdf != 0.0)
             wo = si.to_local(ds.d)
             # A traced vertex weighs both parts alike (the continuation samples the

@@ -303,11 +303,29 @@ def _mixture_pdf(sky: SkySampler, table_pdf, env_pdf):
     return fraction * sky.pmf * table_pdf + (1.0 - fraction) * env_pdf
 
 
+@dataclass
+class SkyGuide:
+    """Emitter samples of the sky that follow, with probability ``fraction`` (per lane;
+    0: never), the sky that ``record`` of ``index`` saw through an opening
+    (:meth:`~pmic_integrator.cache.RecordIndex.sample_guide` with ``sky``)."""
+
+    index: object  #: the RecordIndex
+    record: mi.UInt32
+    fraction: mi.Float
+
+    def mix(self, other_pdf, pmf: float, d: mi.Vector3f, active) -> mi.Float:
+        """The strategy's density at ``d``: the guide's share and the rest's."""
+        guide_pdf = self.index.guide_pdf(self.record, d, active & (self.fraction > 0), sky=True)
+        return (1.0 - self.fraction) * other_pdf + self.fraction * pmf * guide_pdf
+
+
 def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, normal: mi.Vector3f,
-                             sample: mi.Point2f, active=True):
+                             sample: mi.Point2f, active=True, guide: SkyGuide | None = None,
+                             u_guide=None):
     """:func:`pmic_integrator.emission.sample_emitter_direction` (with a shadow ray),
     except that the sky is sampled by the mixture of the module's docstring about the
-    surface normal ``normal`` (world space, on the side the light arrives from).
+    surface normal ``normal`` (world space, on the side the light arrives from), and,
+    with ``guide``, where ``u_guide < guide.fraction`` by the sky a record saw.
     ``ds.pdf`` is the density of the whole strategy (emitter choice included), as
     :func:`pdf_emitter_direction` gives it for a direction met by other means."""
     if sky is None:
@@ -329,34 +347,47 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
     # Sky lanes: the direction drawn from the tables where ``product``, the radiance
     # and the mixture's density for both kinds.
     d, sampled_table_pdf = sky.sample(normal, sample, product)
-    dist = dr.select(own, ds.dist, sky.distance)
-    ds.d = dr.select(product, d, ds.d)
+    guided = mi.Bool(False)
+    if guide is not None:
+        # The record's sky: the same 2D sample, now drawn from its bins.
+        guided = is_sky & (mi.Float(u_guide) < guide.fraction)
+        d = dr.select(guided, guide.index.sample_guide(guide.record, sample, guided, sky=True), d)
+    mine = product | guided  # directions drawn here, not by the emitter
+    dist = dr.select(mine, sky.distance, ds.dist)
+    ds.d = dr.select(mine, d, ds.d)
     ds.dist = dist
-    ds.p = dr.select(product, ref.p + d * dist, ds.p)
-    ds.n = dr.select(product, -d, ds.n)
-    ds.delta = dr.select(product, False, ds.delta)
-    ds.emitter = dr.select(product, mi.EmitterPtr(sky.emitter), ds.emitter)
+    ds.p = dr.select(mine, ref.p + d * dist, ds.p)
+    ds.n = dr.select(mine, -d, ds.n)
+    ds.delta = dr.select(mine, False, ds.delta)
+    ds.emitter = dr.select(mine, mi.EmitterPtr(sky.emitter), ds.emitter)
     si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ds.d))
     si.wi = -ds.d
     radiance = sky.emitter.eval(si, is_sky)
-    env_pdf = dr.select(product, sky.pmf * sky.emitter.pdf_direction(ref, ds, product), ds.pdf)
-    table_pdf = dr.select(product, sampled_table_pdf, sky.pdf(normal, ds.d, is_sky & ~product))
+    env_pdf = dr.select(mine, sky.pmf * sky.emitter.pdf_direction(ref, ds, mine), ds.pdf)
+    table_pdf = dr.select(product & ~guided, sampled_table_pdf,
+                          sky.pdf(normal, ds.d, is_sky & ~(product & ~guided)))
     pdf = _mixture_pdf(sky, table_pdf, env_pdf)
+    if guide is not None:
+        pdf = guide.mix(pdf, sky.pmf, ds.d, is_sky)
     ds.pdf = dr.select(is_sky, pdf, ds.pdf)
     spectrum = dr.select(is_sky, radiance * dr.rcp(dr.maximum(pdf, 1e-30)), spectrum)
     ok = active & (ds.pdf != 0.0)
     spectrum = dr.select(ok, spectrum, 0.0)
-    blocked = scene.ray_test(ref.spawn_ray_to(ds.p), ok)
+    blocked = scene.ray_test(emission.shadow_ray(ref, ds), ok)
     return ds, dr.select(blocked, 0.0, spectrum)
 
 
 def pdf_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, ds: mi.DirectionSample3f,
-                          normal: mi.Vector3f, active=True) -> mi.Float:
-    """Density with which :func:`sample_emitter_direction` about ``normal`` draws the
-    emitter direction ``ds`` (``scene.pdf_emitter_direction`` without a sky)."""
+                          normal: mi.Vector3f, active=True, guide: SkyGuide | None = None) -> mi.Float:
+    """Density with which :func:`sample_emitter_direction` about ``normal`` (and with
+    ``guide``) draws the emitter direction ``ds`` (``scene.pdf_emitter_direction``
+    without a sky)."""
     pdf = scene.pdf_emitter_direction(ref, ds, active)
     if sky is None:
         return pdf
     is_sky = mi.Bool(active) & _is_sky(sky, ds.emitter)
-    return dr.select(is_sky, _mixture_pdf(sky, sky.pdf(normal, ds.d, is_sky), pdf), pdf)
+    mixture = _mixture_pdf(sky, sky.pdf(normal, ds.d, is_sky), pdf)
+    if guide is not None:
+        mixture = guide.mix(mixture, sky.pmf, ds.d, is_sky)
+    return dr.select(is_sky, mixture, pdf)
 
