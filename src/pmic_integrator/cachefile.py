@@ -39,7 +39,8 @@ FORMAT = "pmic-cache"
 #:    scene info says whether some BSDF is a smooth coat (SceneInfo.has_delta_coat).
 #: 10: grid pyramids pick a query's level from the densest cell its scan visits
 #:     (PointGridPyramid.level0_key): precomputed irradiance and estimates differ.
-VERSION = 10
+#: 11: records keep the sky their gather saw through openings (CacheRecords.sky_guide).
+VERSION = 11
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
