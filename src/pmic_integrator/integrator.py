@@ -57,8 +57,8 @@ GUIDE_FRACTION = 0.5
 #: outside go on bouncing).
 LIGHT_FRACTION = 0.25
 #: ...and where that record saw the sky through an opening (a window), this fraction
-#: of the vertex's emitter samples of the sky follow the sky it saw (a coin per
-#: sample), the rest the whole sky's tables, all weighted by the mixture's density (as
+#: of the vertex's emitter samples of the sky follow the sky it saw (chosen from
+#: each sample's own square), the rest the whole sky's tables, all weighted by the mixture's density (as
 #: are the continuation's emitter hits there). The tables' samples mostly meet the
 #: walls of a room lit through a window.
 SKY_EMITTER_FRACTION = 0.5
@@ -783,15 +783,13 @@ class PMICIntegrator(mi.SamplingIntegrator):
         def one_sample(sampler, k=0):
             # Sample k of direct_samples, in its own jittered stratum of the square.
             u = jittered(sampler.next_2d(), mi.UInt32(k), self.settings.direct_samples)
-            sky_guide, u_guide = None, None
-            if sky_fraction is not None:
-                sky_guide = skylight.SkyGuide(index, guide_record, sky_fraction)
-                # A coin per sample, independent of its stratum: assigning strategies by
-                # stratum (every other sample) would give each strategy only part of
-                # the square (11 % too dark in a window-lit room).
-                u_guide = sampler.next_1d()
+            # (The strategy is chosen from u itself, as the rest of the mixture is:
+            # choosing it by sample number, every other one, gave each strategy only
+            # its samples' strata of the square: 11 % dark in a window-lit room.)
+            sky_guide = None if sky_fraction is None else \
+                skylight.SkyGuide(index, guide_record, sky_fraction)
             ds, em_weight = skylight.sample_emitter_direction(scene, sky, si, normal, u, active,
-                                                              sky_guide, u_guide)
+                                                              sky_guide)
             ok = active & (ds.pdf != 0.0)
             wo = si.to_local(ds.d)
             # A traced vertex weighs both parts alike (the continuation samples the

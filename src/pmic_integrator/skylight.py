@@ -320,12 +320,14 @@ class SkyGuide:
 
 
 def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, normal: mi.Vector3f,
-                             sample: mi.Point2f, active=True, guide: SkyGuide | None = None,
-                             u_guide=None):
+                             sample: mi.Point2f, active=True, guide: SkyGuide | None = None):
     """:func:`pmic_integrator.emission.sample_emitter_direction` (with a shadow ray),
     except that the sky is sampled by the mixture of the module's docstring about the
     surface normal ``normal`` (world space, on the side the light arrives from), and,
-    with ``guide``, where ``u_guide < guide.fraction`` by the sky a record saw.
+    with ``guide``, with probability ``guide.fraction`` by the sky a record saw (decided
+    by the sample itself, like the rest of the mixture: a fixed map of the square, so
+    that jittered strata stay unbiased; lanes whose fraction is 0 draw exactly what
+    they drew without a guide).
     ``ds.pdf`` is the density of the whole strategy (emitter choice included), as
     :func:`pdf_emitter_direction` gives it for a direction met by other means."""
     if sky is None:
@@ -334,11 +336,18 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
     sample = mi.Point2f(sample)
     index, weight, sample.x = choose_emitter(scene, sample.x, active)
     is_sky = active & (index == sky.emitter_index)
+    guided = mi.Bool(False)
+    if guide is not None:
+        g = guide.fraction
+        guided = is_sky & (sample.x < g)
+        rest = (sample.x - g) / dr.maximum(1.0 - g, 1e-30)
+        sample.x = dr.select(is_sky, dr.clip(dr.select(guided, sample.x / dr.maximum(g, 1e-30), rest),
+                                             0.0, ONE_MINUS_EPSILON), sample.x)
     fraction = sky.product_fraction
-    product = is_sky & (sample.x < fraction)
+    product = is_sky & ~guided & (sample.x < fraction)
     stretched = dr.select(product, sample.x / fraction, (sample.x - fraction) / (1.0 - fraction))
-    sample.x = dr.select(is_sky, dr.clip(stretched, 0.0, ONE_MINUS_EPSILON), sample.x)
-    own = active & ~product
+    sample.x = dr.select(is_sky & ~guided, dr.clip(stretched, 0.0, ONE_MINUS_EPSILON), sample.x)
+    own = active & ~product & ~guided
     emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, own)
     ds, spectrum = emitter.sample_direction(ref, sample, own)
     if len(scene.emitters()) > 1:
@@ -347,10 +356,7 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
     # Sky lanes: the direction drawn from the tables where ``product``, the radiance
     # and the mixture's density for both kinds.
     d, sampled_table_pdf = sky.sample(normal, sample, product)
-    guided = mi.Bool(False)
-    if guide is not None:
-        # The record's sky: the same 2D sample, now drawn from its bins.
-        guided = is_sky & (mi.Float(u_guide) < guide.fraction)
+    if guide is not None:  # the record's sky, from its bins
         d = dr.select(guided, guide.index.sample_guide(guide.record, sample, guided, sky=True), d)
     mine = product | guided  # directions drawn here, not by the emitter
     dist = dr.select(mine, sky.distance, ds.dist)
