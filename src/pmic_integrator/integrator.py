@@ -247,9 +247,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
         self.progress = False
         self._cache_builds = 0  #: view-independent caches built from photons so far
         # One render at a time per integrator object: the prepared scene and the
-        # per-render state below are shared by the Python render() and the sample()
-        # that Mitsuba's C++ render() calls back into (a second thread would see them
-        # half-updated). Separate integrator objects render concurrently.
+        # per-render state below are shared by render() and the sample() it (or a
+        # wrapping integrator such as Mitsuba's ``aov``) calls (a second thread would
+        # see them half-updated). Separate integrator objects render concurrently.
         self._render_lock = threading.RLock()
         self._thread = threading.local()  #: ``inside``: this thread is in render()
         self._fallback_counter = None
@@ -268,7 +268,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
     def render(self, scene: mi.Scene, sensor=0, seed=0, spp: int = 0, develop: bool = True,
                evaluate: bool = True):
         if getattr(self._thread, "inside", False):
-            # Mitsuba's C++ render() calls back into this override: hand it to C++.
+            # Re-entered from within this thread's own render (nothing of pmic's does
+            # this; a wrapper might): Mitsuba's loop, over the view being rendered.
             return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
         with self._render_lock:
             if isinstance(sensor, int):
