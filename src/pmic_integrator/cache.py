@@ -567,7 +567,7 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
         grad_r[c] = grad_r[c] * dr.minimum(1.0, limit_r / dr.maximum(norm_r, 1e-30))
     nearest = block_sum(distance, rays, op="min")
     world = mi.Vector3f(frame.to_world(local))
-    sky = escaped_sky(scene, world, distance, rays)
+    sky = escaped_sky(scene, world, distance, owner, rays)
     guide = guide_cdfs(owner, world, radiance + sky, count)
     sky_guide = guide_cdfs(owner, world, sky, count) if scene.environment() is not None else None
     records = CacheRecords(mi.Point3f(p), mi.Vector3f(n), mi.Float(radius), mi.Color3f(irradiance),
@@ -590,11 +590,11 @@ def guide_bin(d: mi.Vector3f) -> mi.UInt32:
 
 
 def escaped_sky(scene: mi.Scene, direction: mi.Vector3f, distance: mi.Float,
-                rays: int) -> mi.Color3f:
+                owner: mi.UInt32, rays: int) -> mi.Color3f:
     """The environment's radiance along the gather rays that left the scene (``distance``
-    infinite), 0 along the others, for records that see the sky through an opening
-    (at most SKY_GUIDE_OPENNESS of their ``rays`` rays left): what a record saw of the
-    sky. It goes into the record's guide only, not its irradiance (direct light is
+    infinite), 0 along the others, for records that see the sky through an opening (at
+    most SKY_GUIDE_OPENNESS of their ``rays`` rays left; ``owner``: each ray's record):
+    what a record saw of the sky. It goes into the record's guide only, not its irradiance (direct light is
     sampled at the shading point): a continuation guided by it goes out through the
     window a room is lit by, where the shading point's emitter samples, drawn over the
     whole sky, mostly meet the walls (in a room lit through a window, direct light was
@@ -605,7 +605,6 @@ def escaped_sky(scene: mi.Scene, direction: mi.Vector3f, distance: mi.Float,
     if environment is None or not dr.any(escaped):
         return dr.zeros(mi.Color3f, dr.width(distance))
     openness = block_sum(dr.select(escaped, 1.0, 0.0), rays) * (1.0 / rays)
-    owner = dr.arange(mi.UInt32, dr.width(distance)) // opaque_u32(rays)
     escaped &= dr.gather(mi.Float, openness, owner) <= SKY_GUIDE_OPENNESS
     si = dr.zeros(mi.SurfaceInteraction3f, dr.width(distance))
     si.wi = -direction
@@ -835,11 +834,9 @@ class RecordIndex:
     def sky_guiding_pays(self) -> bool:
         """Did any record see the sky through an opening (:func:`escaped_sky`)? Then
         emitter samples of the sky at the points they guide may follow what it saw."""
-        sky = self.records.sky_guide
-        if sky is None or self.records.count == 0:
+        if self.records.sky_guide is None or self.records.count == 0:
             return False
-        last = dr.arange(mi.UInt32, self.records.count) * GUIDE_BINS + (GUIDE_BINS - 1)
-        return bool(dr.any(dr.gather(mi.Float, sky, last) > 0))
+        return bool(dr.any(self.sees_sky(dr.arange(mi.UInt32, self.records.count))))
 
     def sees_sky(self, record: mi.UInt32, active=True) -> mi.Bool:
         """Whether ``record``'s gather saw the sky through an opening."""

@@ -86,14 +86,19 @@ def _bucket_sort(bucket: mi.UInt32, table_size: int):
     return cell_start, order
 
 
+def _bucket_count(cell_start: mi.UInt32, bucket: mi.UInt32, active=True) -> mi.UInt32:
+    """Entries in each hash ``bucket``."""
+    return dr.gather(mi.UInt32, cell_start, bucket + 1, active) - \
+        dr.gather(mi.UInt32, cell_start, bucket, active)
+
+
 def _bucket_occupancy(cell_start: mi.UInt32, table_mask: int, origin: mi.Point3f,
                       cell_size: float, query: mi.Point3f, active=True) -> mi.UInt32:
     """Entries in the hash bucket of each query's cell (its cell's points, plus any
     that share the bucket)."""
     inv = dr.opaque(mi.Float, 1.0 / cell_size)
     bucket = hash_cell(cell_of(query, origin, inv), dr.opaque(mi.UInt32, table_mask))
-    return dr.gather(mi.UInt32, cell_start, bucket + 1, active) - \
-        dr.gather(mi.UInt32, cell_start, bucket, active)
+    return _bucket_count(cell_start, bucket, active)
 
 
 #: The key of an empty bucket: no cell key (30 bits) equals it.
@@ -117,8 +122,7 @@ def _neighbourhood_occupancy(cell_start: mi.UInt32, middle_key: mi.UInt32, table
     for j in range(27):
         cell = center + _neighbour_offset(mi.UInt32(j))
         bucket = hash_cell(cell, mask)
-        count = dr.gather(mi.UInt32, cell_start, bucket + 1, active) - \
-            dr.gather(mi.UInt32, cell_start, bucket, active)
+        count = _bucket_count(cell_start, bucket, active)
         if j != 13:  # the query's own cell counts as it is, as before
             count = dr.select(dr.gather(mi.UInt32, middle_key, bucket, active) == cell_key(cell),
                               count, 0)

@@ -57,10 +57,10 @@ GUIDE_FRACTION = 0.5
 #: outside go on bouncing).
 LIGHT_FRACTION = 0.25
 #: ...and where that record saw the sky through an opening (a window), this fraction
-#: of the vertex's emitter samples of the sky follow the sky it saw (chosen from
-#: each sample's own square), the rest the whole sky's tables, all weighted by the mixture's density (as
-#: are the continuation's emitter hits there). The tables' samples mostly meet the
-#: walls of a room lit through a window.
+#: of the vertex's emitter samples of the sky follow the sky it saw (chosen from each
+#: sample's own square), the rest the whole sky's tables, all weighted by the
+#: mixture's density (as are the continuation's emitter hits there). The tables'
+#: samples mostly meet the walls of a room lit through a window.
 SKY_EMITTER_FRACTION = 0.5
 
 
