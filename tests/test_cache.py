@@ -289,3 +289,54 @@ def test_guides_hold_the_sky_seen_through_a_window_and_cut_its_noise(monkeypatch
     noise_without, mean_without = direct_noise_and_mean()
     assert noise_with < 0.7 * noise_without  # measured 0.45 (0.80 with the guided continuation alone)
     assert abs(mean_with / mean_without - 1) < 0.03
+
+
+def _thin_wall_index():
+    """One final-gather record (it holds direct light) on a floor, 0.1 from a thin wall
+    standing at x = 0, whose reach (0.5) passes the wall; its gather's nearest hit
+    (``obstacle``) is the wall."""
+    scene = mi.load_dict({
+        "type": "scene",
+        "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(4)},
+        "wall": {"type": "rectangle",
+                 "to_world": mi.ScalarTransform4f().translate([0, 0, 1]).rotate([0, 1, 0], 90).scale([1, 4, 1])},
+    })
+    zeros = mi.Vector3f(0.0, 0.0, 0.0)
+    records = CacheRecords(mi.Point3f(-0.1, 0.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0), mi.Float(1.0),
+                           mi.Color3f(0.2), (zeros,) * 3, (zeros,) * 3, obstacle=mi.Float(0.1))
+    index = RecordIndex.build(records, 0.5, scene, lift=1e-3)
+    index.direct = mi.Color3f(1.0)
+    return index
+
+
+def _interpolate_counting_shadow_rays(index, points, monkeypatch):
+    traced = dr.zeros(mi.UInt32, 1)
+    blocked = cache.segment_blocked
+
+    def counting(scene, origin, target, active):
+        dr.scatter_reduce(dr.ReduceOp.Add, traced, mi.UInt32(1), mi.UInt32(0), mi.Bool(active))
+        return blocked(scene, origin, target, active)
+
+    monkeypatch.setattr(cache, "segment_blocked", counting)
+    x = np.array(points, dtype=np.float32).T
+    e, covered = index.interpolate(mi.Point3f(x), mi.Vector3f(0.0, 0.0, 1.0))
+    dr.eval(e, covered, traced)
+    return np.array(e)[0], np.array(covered), int(traced[0])
+
+
+def test_records_reaching_across_a_thin_wall_are_not_read(monkeypatch):
+    """Across the wall the record is hidden (its direct light would leak into the
+    dark side). Points nearer it than its gather's nearest hit (up to
+    OBSTACLE_MARGIN) need no shadow ray: nothing can stand between them. Before,
+    records holding direct light traced one for every point they reached (36 % of
+    an exterior's render)."""
+    index = _thin_wall_index()
+    near = [[-0.15, 0.03, 0.0], [-0.12, -0.05, 0.0], [-0.05, 0.0, 0.0]]
+    e, covered, traced = _interpolate_counting_shadow_rays(index, near, monkeypatch)
+    assert covered.all() and np.allclose(e, 1.2, rtol=1e-5)  # irradiance + direct
+    assert traced == 0
+    far_lit, dark = [[-0.45, 0.1, 0.0]], [[0.05, 0.0, 0.0], [0.2, 0.1, 0.0]]
+    e, covered, traced = _interpolate_counting_shadow_rays(index, far_lit + dark, monkeypatch)
+    assert covered.tolist() == [True, False, False]
+    assert e[0] == pytest.approx(1.2, rel=1e-5) and (e[1:] == 0).all()
+    assert traced >= 3
