@@ -245,6 +245,22 @@ def courtyard(size=(48, 36), sun=True, sky=(0.4, 0.5, 0.7)):
     return d
 
 
+def sunlit_rough_floor(size=(32, 24)):
+    """A rough plastic floor (broad glossy lobe over a grey diffuse one) before a white
+    wall, under a sun whose glossy reflection off the floor lights the wall: light
+    that reaches the wall through the floor's glossy lobe is a caustic (the caustic
+    map's), through its diffuse lobe it is not."""
+    return {"type": "scene",
+            "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(3),
+                      "bsdf": {"type": "roughplastic", "alpha": 0.35,
+                               "diffuse_reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}}},
+            "wall": {"type": "rectangle", "to_world": T().translate([0, 1.5, -1]).scale([3, 1.5, 1]),
+                     "bsdf": _diffuse((0.8, 0.8, 0.8))},
+            "sun": {"type": "directional", "direction": [0, -0.6, -0.8],
+                    "irradiance": {"type": "rgb", "value": [3.0] * 3}},
+            "sensor": _sensor((0, 1.0, 3.0), (0, 1.0, -1), 50, size)}
+
+
 def window_room(size=(40, 30), sky=(0.5, 0.6, 0.8), shared_material=False):
     """A 4 × 2.5 × 4 m room of one-sided walls lit only by a constant sky through a
     1.2 × 0.8 m window in its front wall: seen from inside, the sky is a small part of

@@ -40,7 +40,9 @@ FORMAT = "pmic-cache"
 #: 10: grid pyramids pick a query's level from the densest cell its scan visits
 #:     (PointGridPyramid.level0_key): precomputed irradiance and estimates differ.
 #: 11: records keep the sky their gather saw through openings (CacheRecords.sky_guide).
-VERSION = 11
+#: 12: photons sample a rough plastic's lobes apart (bsdfs.sample_lobes_apart); scene
+#:     info says whether some BSDF has one (SceneInfo.has_glossy_coat).
+VERSION = 12
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

@@ -25,7 +25,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ._jit import concat, opaque_float, opaque_u32, rng as make_rng, shading_normal_on_side
-from .bsdfs import dark_side, lobes_separable
+from .bsdfs import dark_side, glossy_beside_diffuse, lobes_separable, sample_lobes_apart
 from .emission import emission_bounds, sample_emitter_rays
 from .streams import photon_batch_seed
 
@@ -214,13 +214,19 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
             out["delta"].append(dr.gather(mi.Bool, from_delta, idx))
         if bounce == bounces:
             break
-        bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(),
-                                      mi.Point2f(rng.next_float32(), rng.next_float32()), valid)
-        bsdf_weight = bsdf_weight * shading_normal_factors(si, n, -ray.d, bs.wo)[1]
+        u1, u2 = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
         # A bounce off a BSDF that ignores lobe masks (principled) counts as diffuse:
         # the camera path cannot split its lobes either, so it must not be a caustic.
-        sampled_specular = _is_specular(bs.sampled_type) & lobes_separable(
-            bsdf, si, valid & has_diffuse & _is_specular(flags))
+        separable = lobes_separable(bsdf, si, valid & has_diffuse & _is_specular(flags))
+        # Rough plastic: each lobe sampled apart, so that a photon that took the
+        # glossy lobe carries that lobe's light only (see sample_lobes_apart).
+        apart = valid & glossy_beside_diffuse(flags) & separable
+        bs, bsdf_weight = bsdf.sample(ctx, si, u1, u2, valid & ~apart)
+        bs_apart, weight_apart = sample_lobes_apart(bsdf, si, u1, u2, apart, ctx.mode)
+        bs[apart] = bs_apart
+        bsdf_weight[apart] = weight_apart
+        bsdf_weight = bsdf_weight * shading_normal_factors(si, n, -ray.d, bs.wo)[1]
+        sampled_specular = _is_specular(bs.sampled_type) & separable
         specular_so_far &= sampled_specular
         alive = valid & (bs.pdf > 0) & (dr.max(bsdf_weight) > 0)
         if kind == CAUSTIC:

@@ -129,12 +129,15 @@ class SceneInfo:
     #: Some BSDF has a diffuse lobe under delta ones and no glossy lobe (a smooth
     #: plastic's coat): camera paths trace its reflection of the lights (coat rays).
     has_delta_coat: bool = False
+    #: Some BSDF has a diffuse lobe beside a glossy one (a rough plastic): past a vertex
+    #: that read the caustic map, camera paths sample its lobes apart.
+    has_glossy_coat: bool = False
 
     @staticmethod
     def of(scene: mi.Scene) -> "SceneInfo":
         bbox = scene_bbox(scene)
         diagonal = float(dr.norm(bbox.extents())) if bbox.valid() else 0.0
-        area, has_diffuse, has_specular, has_coat = 0.0, False, False, False
+        area, has_diffuse, has_specular, has_coat, has_glossy_coat = 0.0, False, False, False, False
         for shape in scene.shapes():
             a = _shape_area(shape)
             area += a
@@ -143,6 +146,7 @@ class SceneInfo:
             has_specular |= bool(flags & (int(mi.BSDFFlags.Delta) | int(mi.BSDFFlags.Glossy)))
             has_coat |= bool(flags & int(mi.BSDFFlags.Diffuse)) and \
                 bool(flags & int(mi.BSDFFlags.Delta)) and not flags & int(mi.BSDFFlags.Glossy)
+            has_glossy_coat |= bool(flags & int(mi.BSDFFlags.Diffuse)) and bool(flags & int(mi.BSDFFlags.Glossy))
         if not math.isfinite(diagonal) or diagonal <= 0:
             diagonal = 1.0
         if not math.isfinite(area) or area <= 0:
@@ -150,7 +154,7 @@ class SceneInfo:
         infinite = any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) for e in scene.emitters())
         delta = any(is_delta(e) for e in scene.emitters())
         return SceneInfo(diagonal, area, len(scene.emitters()), has_diffuse, has_specular, infinite,
-                         delta, has_coat)
+                         delta, has_coat, has_glossy_coat)
 
 
 @dataclass
