@@ -208,8 +208,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
            same cache.
 
     **What it does not do**: participating media are ignored (surfaces only);
-    ``max_depth`` is exact for light reaching the first diffuse surface a camera path
-    meets and approximate for deeper vertices reached through specular chains;
+    a bounded ``max_depth`` holds where camera paths read the cache and the photon maps
+    (the records at the one depth they are made for, the maps by depth), but gather
+    rays through delta/glossy chains may add a segment or two to what they read;
     polarised and spectral variants are not supported (use ``llvm_ad_rgb`` or
     ``cuda_ad_rgb``); it is not differentiable.
 
@@ -410,10 +411,11 @@ class PMICIntegrator(mi.SamplingIntegrator):
         """Count the camera vertices that no record reached (stats)."""
         dr.scatter_reduce(dr.ReduceOp.Add, self._fallback_counter, mi.UInt32(1), mi.UInt32(0), need)
 
-    def _global_irradiance(self, p, n, depth, active, cached, covered):
+    def _global_irradiance(self, p, n, depth, active, cached, covered, gathered=True):
         """Irradiance at a camera vertex from light that bounced off a diffuse surface
         first: the cache's ``cached`` value where ``covered``, else the global photon
-        map (the method ``photon_map`` reads the map only)."""
+        map (the method ``photon_map`` reads the map only, and with ``final_gather``
+        gathers it where ``gathered``: see ``records_read_depth``)."""
         prepared = self._view
         lanes = dr.width(p)
         depth_limit = self._depth_limit(depth)
@@ -421,10 +423,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
             return dr.zeros(mi.Color3f, lanes)
         if self.settings.method == "photon_map":
             if self.settings.final_gather:
-                return dr.zeros(mi.Color3f, lanes)
+                return self._photon_estimate(p, n, depth_limit, mi.Bool(active) & ~mi.Bool(gathered))
             return self._photon_estimate(p, n, depth_limit, active)
         need = mi.Bool(active) & ~covered
-        self._count_fallback(need)
+        self._count_fallback(need & gathered)  # (not the vertices deeper than the records serve)
         fallback = self._photon_estimate(p, n, depth_limit, need)
         return dr.select(covered, cached, fallback)
 
@@ -477,6 +479,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
         rr_depth = self.settings.rr_depth
         max_depth = 0xFFFFFFFF if self.settings.max_depth == -1 else self.settings.max_depth
         max_iterations = -1 if self.settings.max_depth == -1 else self.settings.max_depth
+        # With max_depth bounding the paths, the records hold the light of paths read from
+        # one depth only (Settings.records_read_depth).
+        bounded = self.settings.max_depth != -1
+        read_depth = self.settings.records_read_depth
         use_indirect = prepared.global_map.count > 0 or prepared.caustic_map.count > 0
         has_caustic_map = prepared.caustic_map.count > 0
         photon_map_gather = self.settings.method == "photon_map" and self.settings.final_gather and \
@@ -579,6 +585,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
             cache_ok = lit_diffuse & mi.Bool(use_indirect) & (depth + 3 <= max_depth)
             if dr.hint(gather_first, mode="scalar"):
                 probe = cache_ok & (traced > 0)
+                if dr.hint(bounded, mode="scalar"):
+                    probe &= depth == read_depth  # (deeper: traced on, see records_read_depth)
                 cached, covered, radius = self._cache_lookup(si.p, n, shading_n, probe)
                 trusted_radius = dr.select(covered, radius, untrusted_radius)
                 trust = probe & ((si.t >= TRUST_RECORD_RADII * trusted_radius) |
@@ -586,7 +594,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
                 traced_here = lit_diffuse & ~trust
             else:
                 trust = mi.Bool(cache_ok)
-                cached, covered, _ = self._cache_lookup(si.p, n, shading_n, trust & mi.Bool(reads_cache))
+                # (Deeper than the records were made for: the photon map, depth by depth.)
+                records_here = trust & ((depth == read_depth) if bounded else True)
+                cached, covered, _ = self._cache_lookup(si.p, n, shading_n,
+                                                        records_here & mi.Bool(reads_cache))
                 traced_here = mi.Bool(False)
             # A rough plastic traced once armed: light through its glossy lobe is a caustic
             # the map holds, through its diffuse lobe the path's. Mitsuba's sampling of
@@ -670,9 +681,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
             if dr.hint(gather_first, mode="scalar"):
                 irradiance = self._total_irradiance(scene, si, n, trust, cached, covered)
             else:
-                irradiance = self._global_irradiance(si.p, n, depth, trust, cached, covered)
+                irradiance = self._global_irradiance(si.p, n, depth, trust, cached, covered,
+                                                     gathered=records_here)
             if dr.hint(photon_map_gather, mode="scalar"):
-                irradiance += self._final_gather_ray(scene, sampler, si, n, trust)
+                irradiance += self._final_gather_ray(scene, sampler, si, n, records_here)
             indirect = _finite(β * response * irradiance, trust)
             L += caustic + indirect
 

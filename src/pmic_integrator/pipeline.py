@@ -413,7 +413,10 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
     if global_map.count and settings.method == "photon_map" and not settings.final_gather:
         skipped.append("precomputed irradiance: photon_map without final gathering never reads it")
     elif global_map.count:
-        depth_limit = None if settings.max_depth == -1 else settings.max_depth - 2
+        # A photon of k interactions read by a gather ray completes a camera path of
+        # records_read_depth + 2 + k segments: at most max_depth.
+        depth_limit = None if settings.max_depth == -1 else \
+            settings.max_depth - 2 - settings.records_read_depth
         # Gather rays read this copy (a fraction of the photons, see precompute_irradiance).
         gather_source = GatherSource.build(
             precompute_irradiance(global_map, global_radius, settings.lookup_size, depth_limit),

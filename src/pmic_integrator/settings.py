@@ -178,6 +178,16 @@ class Settings:
         return self.method == "pmic" and self.estimator == "final_gather"
 
     @property
+    def records_read_depth(self) -> int:
+        """The camera depth at which the cache's records (and the precomputed
+        irradiance their gather rays read) are read when ``max_depth`` bounds the
+        paths: 0 for first-hit interpolation and the classic methods, 1 behind the
+        final gather's traced vertex. Their light is that of paths of at most
+        max_depth segments read from there; elsewhere the photon map (first hit) or
+        more tracing (final gather) serves, depth by depth."""
+        return 1 if self.final_gather_camera else 0
+
+    @property
     def gather_strata(self) -> tuple[int, int]:
         """M×N strata of a record's gather with N ≈ πM, as Ward & Heckbert recommend."""
         m_theta = max(2, int(round(math.sqrt(self.gather_rays / math.pi))))
