@@ -42,7 +42,9 @@ FORMAT = "pmic-cache"
 #: 11: records keep the sky their gather saw through openings (CacheRecords.sky_guide).
 #: 12: photons sample a rough plastic's lobes apart (bsdfs.sample_lobes_apart); scene
 #:     info says whether some BSDF has one (SceneInfo.has_glossy_coat).
-VERSION = 12
+#: 13: with a bounded max_depth, final-gather caches precompute irradiance for records
+#:     read at depth 1 (Settings.records_read_depth), one photon bounce fewer.
+VERSION = 13
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
