@@ -218,9 +218,13 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         # A bounce off a BSDF that ignores lobe masks (principled) counts as diffuse:
         # the camera path cannot split its lobes either, so it must not be a caustic.
         separable = lobes_separable(bsdf, si, valid & has_diffuse & _is_specular(flags))
-        # Rough plastic: each lobe sampled apart, so that a photon that took the
-        # glossy lobe carries that lobe's light only (see sample_lobes_apart).
-        apart = valid & glossy_beside_diffuse(flags) & separable
+        # Rough plastic, for the caustic map: each lobe sampled apart, so that a photon
+        # that took the glossy lobe carries that lobe's light only (sample_lobes_apart).
+        # (Not for the global map, whose photons' lobe only marks the L S* D paths
+        # that fallback estimates leave to the caustic map: there half of the bounces
+        # took the weak glossy lobe and ended, and 200k photons took 1.2 s instead of
+        # 0.7 s in the 97k-triangle room of benchmarks/stage_costs.py.)
+        apart = valid & glossy_beside_diffuse(flags) & separable & (kind == CAUSTIC)
         bs, bsdf_weight = bsdf.sample(ctx, si, u1, u2, valid & ~apart)
         bs_apart, weight_apart = sample_lobes_apart(bsdf, si, u1, u2, apart, ctx.mode)
         bs[apart] = bs_apart
