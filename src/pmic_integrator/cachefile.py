@@ -44,7 +44,9 @@ FORMAT = "pmic-cache"
 #:     info says whether some BSDF has one (SceneInfo.has_glossy_coat).
 #: 13: with a bounded max_depth, final-gather caches precompute irradiance for records
 #:     read at depth 1 (Settings.records_read_depth), one photon bounce fewer.
-VERSION = 13
+#: 14: the sky sampler says whether the sky is even (SkySampler.even): records' guides
+#:     then hold the sky they saw wherever they are.
+VERSION = 14
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

@@ -590,9 +590,12 @@ class CacheBuilder:
         n = concat(new_n, mi.Vector3f)
         r = concat(new_r, mi.Float)
         before = existing.records.count if existing is not None else 0
+        sky = self.prepared.sky
         records = cache_mod.compute_records(self.scene, self.prepared.gather_source, p, n, r,
                                             self.settings.gather_strata,
-                                            self.settings.seed + streams.RECORDS + before, self.offset)
+                                            self.settings.seed + streams.RECORDS + before, self.offset,
+                                            cache_mod.EVEN_SKY_OPENNESS if sky is not None and sky.even
+                                            else cache_mod.SKY_GUIDE_OPENNESS)
         all_records = existing.records.extend(records) if existing is not None else records
         index = self.index(all_records)
         if settle:

@@ -67,6 +67,10 @@ CELL_MARGIN = 1e-4
 #: but +3 % on exterior_envmap, whose large bright patch the emitter's own sampling
 #: serves better.
 PRODUCT_FRACTION = 0.9
+#: A sky is even (``SkySampler.even``) when its radiance varies within the records'
+#: guide bins by at most this (:func:`_variation_within_guide_bins`): 0 for a constant
+#: sky, 0.7-0.95 for the environment maps tried; records may then hold it everywhere.
+EVEN_SKY_VARIATION = 0.25
 #: A cell whose environment density somewhere exceeds this many times the density of
 #: its power spread evenly over it holds a peak finer than the cell (a sun in an HDR
 #: sky): uniform sampling within the cell would rarely hit it, so the tables leave such
@@ -203,6 +207,22 @@ def _peaked_cells(emitter):
     return peaked, float(cell_power[peaked].sum() / total)
 
 
+def _variation_within_guide_bins(directions: np.ndarray, radiance: np.ndarray) -> float:
+    """√(Σ (L - L̄_bin)²) / √(Σ L²) over ``directions`` (equal solid angles), L̄_bin the
+    mean over each direction's guide bin (cache.guide_bin): 0 for a constant sky; 0.7-0.95
+    for the bundled and public environment maps (a sun or studio lights in them)."""
+    from .cache import GUIDE_BANDS, GUIDE_BINS, GUIDE_SECTORS  # (cache imports this module)
+
+    band = np.clip(np.floor((directions[:, 2] + 1.0) * 0.5 * GUIDE_BANDS), 0, GUIDE_BANDS - 1)
+    phi = np.mod(np.arctan2(directions[:, 1], directions[:, 0]), 2.0 * math.pi)
+    sector = np.clip(np.floor(phi * GUIDE_SECTORS / (2.0 * math.pi)), 0, GUIDE_SECTORS - 1)
+    bins = (band * GUIDE_SECTORS + sector).astype(np.int64)
+    count = np.bincount(bins, minlength=GUIDE_BINS)
+    mean = np.bincount(bins, radiance, minlength=GUIDE_BINS) / np.maximum(count, 1)
+    total = float((radiance ** 2).sum())
+    return float(np.sqrt(((radiance - mean[bins]) ** 2).sum() / total)) if total > 0 else 0.0
+
+
 @dataclass
 class SkySampler:
     """Sky radiance × cosine tables for one environment emitter (see the module)."""
@@ -217,6 +237,10 @@ class SkySampler:
     #: (twice the radius of emission.emission_sphere), for its shadow ray.
     distance: float
     cdf: mi.Float  #: per normal bin, the cumulative distribution over the sky cells
+    #: The sky's radiance varies little within the records' guide bins (a constant or
+    #: overcast sky; :data:`EVEN_SKY_VARIATION`): guides may hold it everywhere
+    #: (cache.EVEN_SKY_OPENNESS).
+    even: bool = False
 
     @staticmethod
     def build(scene: mi.Scene) -> "SkySampler | None":
@@ -236,6 +260,7 @@ class SkySampler:
         radiance = np.array(mi.luminance(mi.Color3f(emitter.eval(si))), dtype=np.float64)
         radiance = np.broadcast_to(radiance, (len(directions),))  # a constant sky gives one value
         radiance = np.where(np.isfinite(radiance) & (radiance > 0), radiance, 0.0)
+        even = _variation_within_guide_bins(directions, radiance) <= EVEN_SKY_VARIATION
         radiance = radiance.reshape(SKY_BANDS * SKY_SECTORS, -1).mean(1)
         if not radiance.sum() > 0:
             return None
@@ -253,7 +278,7 @@ class SkySampler:
         cdf[:, -1] = 1.0
         return SkySampler(emitter, index, emitter_pmf(scene, index),
                           PRODUCT_FRACTION * (1.0 - peaked_share) ** PEAK_EXPONENT, 2.0 * emission_sphere(scene)[1],
-                          mi.Float(cdf.ravel()))
+                          mi.Float(cdf.ravel()), even)
 
     def _bin(self, n: mi.Vector3f) -> mi.UInt32:
         return normal_bin(n)
