@@ -340,3 +340,31 @@ def test_records_reaching_across_a_thin_wall_are_not_read(monkeypatch):
     assert covered.tolist() == [True, False, False]
     assert e[0] == pytest.approx(1.2, rel=1e-5) and (e[1:] == 0).all()
     assert traced >= 3
+
+
+def test_a_record_tests_visibility_only_towards_what_its_gather_met(monkeypatch):
+    """The record beside the thin wall with its gather's nearest hit per azimuth sector
+    (cache.obstacle_sectors, from real rays): points away from the wall, farther than
+    the wall is, need no shadow ray (the record's one nearest hit made each of them
+    trace one); points across the wall still do, and are not read."""
+    from pmic_integrator import streams
+
+    index = _thin_wall_index()
+    scene = index.scene
+    p, n = mi.Point3f(-0.1, 0.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0)
+    ray, owner, local, _, _, _ = cache._stratified_rays(p, n, (9, 28), 1, streams.RECORD_GATHER, 1e-5)
+    hit = scene.ray_intersect_preliminary(ray)
+    distance = dr.select(hit.is_valid(), hit.t, dr.inf)
+    sectors = np.array(cache.obstacle_sectors(local, distance, owner, 1))
+    # Towards the wall (+x) it is ~0.1 away; the other way the floor's far edge.
+    assert 0.1 <= sectors.min() < 0.12
+    assert np.sort(sectors)[cache.OBSTACLE_SECTORS // 2] > 1.0
+    index.records.obstacle_sectors = mi.Float(sectors)
+    index.records.shading_normal = mi.Vector3f(n)
+    away = [[-0.45, 0.1, 0.0], [-0.4, -0.2, 0.0]]
+    e, covered, traced = _interpolate_counting_shadow_rays(index, away, monkeypatch)
+    assert covered.all() and np.allclose(e, 1.2, rtol=1e-5)
+    assert traced == 0  # (2 with the record's one nearest hit)
+    e, covered, traced = _interpolate_counting_shadow_rays(index, [[0.05, 0.0, 0.0], [0.2, 0.1, 0.0]],
+                                                           monkeypatch)
+    assert not covered.any() and (e == 0).all() and traced >= 2

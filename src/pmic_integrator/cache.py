@@ -117,6 +117,9 @@ class CacheRecords:
     #: The same over the sky its gather rays saw leave the scene (:func:`escaped_sky`),
     #: zeros where they saw none: a density for emitter samples of the sky.
     sky_guide: mi.Float = None
+    #: The gather's nearest hit per azimuth sector of the record's (shading-normal)
+    #: frame, OBSTACLE_SECTORS per record (None: only ``obstacle`` is known).
+    obstacle_sectors: mi.Float = None
 
     @property
     def count(self) -> int:
@@ -155,6 +158,12 @@ class CacheRecords:
         if self.sky_guide is not None or other.sky_guide is not None:
             sky = lambda r: r.sky_guide if r.sky_guide is not None else dr.zeros(mi.Float, r.count * GUIDE_BINS)  # noqa: E731
             sky_guide = concat([sky(self), sky(other)], mi.Float)
+        sectors = None
+        if self.obstacle_sectors is not None or other.obstacle_sectors is not None:
+            # (Records without them: their one nearest hit in every sector.)
+            per = lambda r: r.obstacle_sectors if r.obstacle_sectors is not None else dr.repeat(  # noqa: E731
+                r.obstacle if r.obstacle is not None else dr.full(mi.Float, dr.inf, r.count), OBSTACLE_SECTORS)
+            sectors = concat([per(self), per(other)], mi.Float)
         return CacheRecords(
             concat([self.position, other.position], mi.Point3f),
             concat([self.normal, other.normal], mi.Vector3f),
@@ -162,13 +171,14 @@ class CacheRecords:
             concat([self.irradiance, other.irradiance], mi.Color3f),
             tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_t, other.grad_t)),
             tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_r, other.grad_r)),
-            obstacle, shading_normal, guide, sky_guide)
+            obstacle, shading_normal, guide, sky_guide, sectors)
 
     def nbytes(self) -> int:
         return 4 * (3 + 3 + 1 + 3 + 18 + (self.obstacle is not None)
                     + 3 * (self.shading_normal is not None)
                     + GUIDE_BINS * (self.guide is not None)
-                    + GUIDE_BINS * (self.sky_guide is not None)) * self.count
+                    + GUIDE_BINS * (self.sky_guide is not None)
+                    + OBSTACLE_SECTORS * (self.obstacle_sectors is not None)) * self.count
 
 
 def block_sum(values, block: int, op: str = "sum"):
@@ -223,7 +233,7 @@ def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_
                 max_error, active, earlier_than=None, priority=None, visibility=None):
     """Mask of queries covered by some record in ``grid`` (optionally: only by records
     whose ``priority`` is smaller than the query's ``earlier_than``; with
-    ``visibility`` = (scene, obstacle, lift), only by records not hidden from it)."""
+    ``visibility`` = (scene, records, lift), only by records not hidden from it)."""
 
     def visit(found, index, valid):
         rp = dr.gather(mi.Point3f, records_p, index, valid)
@@ -231,8 +241,8 @@ def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_
         rr = dr.gather(mi.Float, records_r, index, valid)
         ok = valid & covers(query_p, query_n, rp, rn, rr, max_error)
         if visibility is not None:
-            scene, obstacle, lift = visibility
-            ob = dr.gather(mi.Float, obstacle, index, ok)
+            scene, records, lift = visibility
+            ob = obstacle_towards(records, index, rp, query_p, ok)
             ok &= ~hidden_from(scene, query_p, query_n, rp, rn, rr * max_error, ob, lift, ok)
         if earlier_than is not None:
             ok &= dr.gather(mi.UInt32, priority, index, ok) < earlier_than
@@ -248,10 +258,49 @@ def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_
 #: (A floor point d from a tall wall: the nearest of 16-256 cosine-distributed rays
 #: meets the wall at 1.03-1.16 d.)
 OBSTACLE_MARGIN = 0.8
+#: Azimuth sectors of a record's frame that keep their own nearest gather hit
+#: (CacheRecords.obstacle_sectors): a point is tested only past the nearest hit in its
+#: own direction (its sector and the two beside it). The record's one nearest hit
+#: made a box beside a record test every point the record reached, on the far side of
+#: the record too.
+OBSTACLE_SECTORS = 8
+
+
+def obstacle_sectors(local: mi.Vector3f, distance: mi.Float, owner: mi.UInt32, count: int) -> mi.Float:
+    """Per record (``owner`` of each gather ray; ``local``: the ray's direction in the
+    record's frame), the nearest hit among its rays in each of OBSTACLE_SECTORS
+    azimuth sectors (+inf where none hit)."""
+    phi = dr.atan2(local.y, local.x)
+    phi = dr.select(phi < 0, phi + 2.0 * math.pi, phi)
+    sector = dr.minimum(mi.UInt32(phi * (OBSTACLE_SECTORS / (2.0 * math.pi))), OBSTACLE_SECTORS - 1)
+    out = dr.full(mi.Float, dr.inf, count * OBSTACLE_SECTORS)
+    dr.scatter_reduce(dr.ReduceOp.Min, out, distance, owner * OBSTACLE_SECTORS + sector)
+    return out
+
+
+def obstacle_towards(records: "CacheRecords", index: mi.UInt32, rec_p: mi.Point3f, x: mi.Point3f,
+                     active) -> mi.Float:
+    """How far record ``index`` saw nothing in the direction of ``x``: its nearest hit
+    in x's azimuth sector and the two beside it (``obstacle_sectors``), else its one
+    nearest hit."""
+    if records.obstacle_sectors is None:
+        return dr.gather(mi.Float, records.obstacle, index, active)
+    frame_n = records.shading_normal if records.shading_normal is not None else records.normal
+    local = _frame(dr.gather(mi.Vector3f, frame_n, index, active)).to_local(x - rec_p)
+    phi = dr.atan2(local.y, local.x)
+    phi = dr.select(phi < 0, phi + 2.0 * math.pi, phi)
+    sector = dr.minimum(mi.UInt32(phi * (OBSTACLE_SECTORS / (2.0 * math.pi))), OBSTACLE_SECTORS - 1)
+    base = index * OBSTACLE_SECTORS
+    nearest = dr.gather(mi.Float, records.obstacle_sectors, base + sector, active)
+    for side in (1, OBSTACLE_SECTORS - 1):
+        nearest = dr.minimum(nearest, dr.gather(mi.Float, records.obstacle_sectors,
+                                                base + (sector + side) % OBSTACLE_SECTORS, active))
+    return nearest
 
 
 def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active) -> mi.Bool:
-    """Is record i (reach a·R, nearest gather hit ``obstacle``) blocked from (x, n)?
+    """Is record i (reach a·R, nearest gather hit ``obstacle``: towards x, see
+    :func:`obstacle_towards`) blocked from (x, n)?
 
     Only records whose reach passes the nearest surface their gather met are tested
     (one shadow ray between the two points, lifted ``lift`` off their surfaces), and
@@ -576,14 +625,15 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
         norm_r = dr.norm(grad_r[c])
         grad_r[c] = grad_r[c] * dr.minimum(1.0, limit_r / dr.maximum(norm_r, 1e-30))
     nearest = block_sum(distance, rays, op="min")
+    sectors = obstacle_sectors(local, distance, owner, count)
     world = mi.Vector3f(frame.to_world(local))
     sky = escaped_sky(scene, world, distance, owner, rays, sky_openness)
     guide = guide_cdfs(owner, world, radiance + sky, count)
     sky_guide = guide_cdfs(owner, world, sky, count) if scene.environment() is not None else None
     records = CacheRecords(mi.Point3f(p), mi.Vector3f(n), mi.Float(radius), mi.Color3f(irradiance),
                            tuple(grad_t), tuple(grad_r), nearest, shading_n, guide,
-                           sky_guide=sky_guide)
-    dr.eval(records.irradiance, *records.grad_t, *records.grad_r, records.obstacle)
+                           sky_guide=sky_guide, obstacle_sectors=sectors)
+    dr.eval(records.irradiance, *records.grad_t, *records.grad_r, records.obstacle, records.obstacle_sectors)
     return records
 
 
@@ -740,7 +790,7 @@ class RecordIndex:
     def _visibility(self):
         if self.scene is None or self.records.obstacle is None:
             return None
-        return self.scene, self.records.obstacle, opaque_float(self.lift)
+        return self.scene, self.records, opaque_float(self.lift)
 
     def covered(self, x, n, active=True) -> mi.Bool:
         """Is (x, n) within the reach a·R of some record (Ward's test) that sees it?"""
@@ -806,8 +856,8 @@ class RecordIndex:
             w = interpolation_weight(ward_error(x, n, rp, rn, rr), max_error)
             ok &= w > 0
             if visibility is not None:
-                scene, obstacle, lift = visibility
-                ob = dr.gather(mi.Float, obstacle, index, ok)
+                scene, records, lift = visibility
+                ob = obstacle_towards(records, index, rp, x, ok)
                 ok &= ~hidden_from(scene, x, n, rp, rn, rr * max_error, ob, lift, ok)
             e = dr.gather(mi.Color3f, r.irradiance, index, ok)
             dx = x - rp

@@ -46,7 +46,8 @@ FORMAT = "pmic-cache"
 #:     read at depth 1 (Settings.records_read_depth), one photon bounce fewer.
 #: 14: the sky sampler says whether the sky is even (SkySampler.even): records' guides
 #:     then hold the sky they saw wherever they are.
-VERSION = 14
+#: 15: records keep their gather's nearest hit per azimuth sector (CacheRecords.obstacle_sectors).
+VERSION = 15
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
