@@ -212,20 +212,48 @@ def _scan_cell(cell_start, keys, positions, index_of, bucket, visited_key, query
 
 
 def _walk(cell_start, keys, positions, index_of, cell, cells: int, query, radius2, state,
-          visit, active, finished, with_offset, label, one_loop: bool):
+          visit, active, finished, with_offset, label, one_loop: bool, reaches=None):
     """Visit the ``cells`` cells: in one loop (:func:`_scan_cells`), or with a loop per
     cell unrolled here. The same entries in the same order either way; one loop is
     traced once and lets each lane move on by itself (cheap to build, best for small
     batches and lookups that stop early), a loop per cell carries no bookkeeping per
-    candidate (best for dense sums: density estimates over hundreds of photons)."""
+    candidate (best for dense sums: density estimates over hundreds of photons).
+    ``reaches(j)`` (unrolled walk only): the lanes whose ball reaches cell j at all;
+    the others skip it (no entry of it could be visited)."""
     if one_loop:
         return _scan_cells(cell_start, keys, positions, index_of, cell, cells, query, radius2,
                            state, visit, active, finished, with_offset, label)
     for j in range(cells):
         bucket, key = cell(mi.UInt32(j))
+        lanes = active if reaches is None else active & reaches(j)
         state = _scan_cell(cell_start, keys, positions, index_of, bucket, key, query, radius2,
-                           state, visit, active, finished, with_offset, f"{label}_cell{j}")
+                           state, visit, lanes, finished, with_offset, f"{label}_cell{j}")
     return state
+
+
+def _reaches_neighbour(query: mi.Point3f, origin: mi.Point3f, inv_cell, center: mi.Vector3i,
+                       radius2_cells):
+    """``reaches(j)`` for :func:`_walk`: does the ball (squared radius in cell units
+    ``radius2_cells``) around each query reach the j-th of the 3×3×3 cells around
+    ``center``? The distance from the query to that cell's box: on each axis where
+    the cell lies beside the query's own, the way to the shared face. (A disc of one
+    cell's radius on a plane reaches ~4 of the 8 corner cells and ~9 of the 12 edge
+    cells.) With a margin for rounding: a cell it cannot quite tell is scanned."""
+    local = (query - origin) * inv_cell - mi.Vector3f(center)  # in [0, 1) per axis
+    # (A query whose cell was clamped, far outside the grid, scans every cell.)
+    unsure = dr.any((local < -0.01) | (local > 1.01))
+
+    def reaches(j: int):
+        offset = (j % 3 - 1, (j // 3) % 3 - 1, j // 9 - 1)
+        gap2 = mi.Float(0.0)
+        for axis, o in enumerate(offset):
+            if o < 0:
+                gap2 += dr.square(local[axis])
+            elif o > 0:
+                gap2 += dr.square(1.0 - local[axis])
+        return unsure | (gap2 <= radius2_cells * 1.0001 + 1e-6)
+
+    return reaches
 
 
 def _neighbour_offset(j: mi.UInt32) -> mi.Vector3i:
@@ -596,7 +624,8 @@ class PointGridPyramid:
             visited = center + _neighbour_offset(j)
             return self._bucket(visited, level, mask), cell_key(visited) | level_bits
 
+        # (Cells are one radius wide: the ball's squared radius is 1 cell².)
         return _walk(self.cell_start, self.keys, self.positions,
                      lambda entry, valid: dr.gather(mi.UInt32, self.index, entry, valid),
                      cell, 27, query, radius2, state, visit, active, None, with_offset, label,
-                     one_loop)
+                     one_loop, _reaches_neighbour(query, self.origin, inv, center, 1.0))
