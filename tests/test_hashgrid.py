@@ -131,9 +131,12 @@ def test_ball_grid_matches_brute_force(seed):
     assert inside.sum() > 100
 
 
-def test_pyramid_finds_exactly_the_points_within_each_querys_own_radius():
+@pytest.mark.parametrize("one_loop", [True, False])
+def test_pyramid_finds_exactly_the_points_within_each_querys_own_radius(one_loop):
     """A dense cluster inside sparse points: queries in the cluster use finer levels
-    (smaller radii); every query must find exactly the points within its radius."""
+    (smaller radii); every query must find exactly the points within its radius, in
+    one loop over the 27 cells or in a loop per cell (density estimates), which skips
+    the cells a query's ball cannot reach (hashgrid._reaches_neighbour)."""
     from pmic_integrator.hashgrid import PointGridPyramid
 
     rng = np.random.default_rng(3)
@@ -156,7 +159,8 @@ def test_pyramid_finds_exactly_the_points_within_each_querys_own_radius():
 
     lanes = len(queries)
     count, s1 = pyramid.for_each_neighbor(mi.Point3f(queries.T), level,
-                                          (dr.zeros(mi.UInt32, lanes), dr.zeros(mi.UInt32, lanes)), visit)
+                                          (dr.zeros(mi.UInt32, lanes), dr.zeros(mi.UInt32, lanes)), visit,
+                                          one_loop=one_loop)
     d = queries[:, None, :] - sorted_points[None, :, :]
     dist2 = d[..., 0] * d[..., 0] + (d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2])
     inside = dist2 < radius_np[:, None] ** 2
