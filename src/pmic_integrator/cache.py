@@ -266,15 +266,19 @@ OBSTACLE_MARGIN = 0.8
 OBSTACLE_SECTORS = 8
 
 
+def _obstacle_sector(local: mi.Vector3f) -> mi.UInt32:
+    """The azimuth sector (of OBSTACLE_SECTORS) of the local direction ``local``."""
+    phi = dr.atan2(local.y, local.x)
+    phi = dr.select(phi < 0, phi + 2.0 * math.pi, phi)
+    return dr.minimum(mi.UInt32(phi * (OBSTACLE_SECTORS / (2.0 * math.pi))), OBSTACLE_SECTORS - 1)
+
+
 def obstacle_sectors(local: mi.Vector3f, distance: mi.Float, owner: mi.UInt32, count: int) -> mi.Float:
     """Per record (``owner`` of each gather ray; ``local``: the ray's direction in the
     record's frame), the nearest hit among its rays in each of OBSTACLE_SECTORS
     azimuth sectors (+inf where none hit)."""
-    phi = dr.atan2(local.y, local.x)
-    phi = dr.select(phi < 0, phi + 2.0 * math.pi, phi)
-    sector = dr.minimum(mi.UInt32(phi * (OBSTACLE_SECTORS / (2.0 * math.pi))), OBSTACLE_SECTORS - 1)
     out = dr.full(mi.Float, dr.inf, count * OBSTACLE_SECTORS)
-    dr.scatter_reduce(dr.ReduceOp.Min, out, distance, owner * OBSTACLE_SECTORS + sector)
+    dr.scatter_reduce(dr.ReduceOp.Min, out, distance, owner * OBSTACLE_SECTORS + _obstacle_sector(local))
     return out
 
 
@@ -286,10 +290,7 @@ def obstacle_towards(records: "CacheRecords", index: mi.UInt32, rec_p: mi.Point3
     if records.obstacle_sectors is None:
         return dr.gather(mi.Float, records.obstacle, index, active)
     frame_n = records.shading_normal if records.shading_normal is not None else records.normal
-    local = _frame(dr.gather(mi.Vector3f, frame_n, index, active)).to_local(x - rec_p)
-    phi = dr.atan2(local.y, local.x)
-    phi = dr.select(phi < 0, phi + 2.0 * math.pi, phi)
-    sector = dr.minimum(mi.UInt32(phi * (OBSTACLE_SECTORS / (2.0 * math.pi))), OBSTACLE_SECTORS - 1)
+    sector = _obstacle_sector(_frame(dr.gather(mi.Vector3f, frame_n, index, active)).to_local(x - rec_p))
     base = index * OBSTACLE_SECTORS
     nearest = dr.gather(mi.Float, records.obstacle_sectors, base + sector, active)
     for side in (1, OBSTACLE_SECTORS - 1):

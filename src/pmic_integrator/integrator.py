@@ -816,14 +816,15 @@ class PMICIntegrator(mi.SamplingIntegrator):
         sky = self._view.sky
         guided = guide_fraction is not None  # given only where the index guides
 
+        sky_guide = None if sky_fraction is None else \
+            skylight.SkyGuide(index, guide_record, sky_fraction)
+
         def one_sample(sampler, k=0):
             # Sample k of direct_samples, in its own jittered stratum of the square.
             u = jittered(sampler.next_2d(), mi.UInt32(k), self.settings.direct_samples)
             # (The strategy is chosen from u itself, as the rest of the mixture is:
             # choosing it by sample number, every other one, gave each strategy only
             # its samples' strata of the square: 11 % dark in a window-lit room.)
-            sky_guide = None if sky_fraction is None else \
-                skylight.SkyGuide(index, guide_record, sky_fraction)
             ds, em_weight = skylight.sample_emitter_direction(scene, sky, si, normal, u, active,
                                                               sky_guide)
             ok = active & (ds.pdf != 0.0)

@@ -30,7 +30,7 @@ import numpy as np
 from . import cache as cache_mod, streams
 from .emission import is_delta, scene_bbox  # noqa: F401  (scene_bbox re-exported)
 from ._jit import concat, every_nth, opaque_float, rng as make_rng
-from .bsdfs import non_diffuse_context
+from .bsdfs import glossy_beside_diffuse, non_diffuse_context
 from .cache import CacheRecords, RecordIndex
 from .gather import VISIBILITY_LIFT, GatherSource
 from .hashgrid import BallGrid, PointGridPyramid
@@ -146,7 +146,7 @@ class SceneInfo:
             has_specular |= bool(flags & (int(mi.BSDFFlags.Delta) | int(mi.BSDFFlags.Glossy)))
             has_coat |= bool(flags & int(mi.BSDFFlags.Diffuse)) and \
                 bool(flags & int(mi.BSDFFlags.Delta)) and not flags & int(mi.BSDFFlags.Glossy)
-            has_glossy_coat |= bool(flags & int(mi.BSDFFlags.Diffuse)) and bool(flags & int(mi.BSDFFlags.Glossy))
+            has_glossy_coat |= bool(glossy_beside_diffuse(flags))
         if not math.isfinite(diagonal) or diagonal <= 0:
             diagonal = 1.0
         if not math.isfinite(area) or area <= 0:

@@ -211,12 +211,9 @@ def _variation_within_guide_bins(directions: np.ndarray, radiance: np.ndarray) -
     """√(Σ (L - L̄_bin)²) / √(Σ L²) over ``directions`` (equal solid angles), L̄_bin the
     mean over each direction's guide bin (cache.guide_bin): 0 for a constant sky; 0.7-0.95
     for the bundled and public environment maps (a sun or studio lights in them)."""
-    from .cache import GUIDE_BANDS, GUIDE_BINS, GUIDE_SECTORS  # (cache imports this module)
+    from .cache import GUIDE_BINS, guide_bin  # (cache imports this module)
 
-    band = np.clip(np.floor((directions[:, 2] + 1.0) * 0.5 * GUIDE_BANDS), 0, GUIDE_BANDS - 1)
-    phi = np.mod(np.arctan2(directions[:, 1], directions[:, 0]), 2.0 * math.pi)
-    sector = np.clip(np.floor(phi * GUIDE_SECTORS / (2.0 * math.pi)), 0, GUIDE_SECTORS - 1)
-    bins = (band * GUIDE_SECTORS + sector).astype(np.int64)
+    bins = np.array(guide_bin(mi.Vector3f(directions.T.astype(np.float32))), dtype=np.int64)
     count = np.bincount(bins, minlength=GUIDE_BINS)
     mean = np.bincount(bins, radiance, minlength=GUIDE_BINS) / np.maximum(count, 1)
     total = float((radiance ** 2).sum())
