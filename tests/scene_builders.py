@@ -289,3 +289,15 @@ def window_room(size=(40, 30), sky=(0.5, 0.6, 0.8), shared_material=False):
          "front_right": panel((1.3, 1.4, 2), (0.7, 0.4), [0, 1, 0], 180, 8),
          "sensor": _sensor((1.2, 1.3, 1.5), (-0.8, 0.9, -2.0), 70, size)}
     return d
+
+
+def slot(gap=0.1, albedo=0.9, size=(32, 32)):
+    """Two white blocks a narrow ``gap`` apart on a grey ground under a constant sky:
+    light enters the slot between them from above and bounces many times inside it,
+    where a photon estimate, a disc wider than the slot, is far off."""
+    white = _diffuse((albedo,) * 3)
+    return {"type": "scene", "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [1.0] * 3}},
+            "ground": {"type": "rectangle", "to_world": T().scale(3), "bsdf": _diffuse((0.5,) * 3)},
+            "left": _box_part((-(0.5 + gap / 2), 0, 0.5), (0.5, 0.5, 0.5), white),
+            "right": _box_part(((0.5 + gap / 2), 0, 0.5), (0.5, 0.5, 0.5), white),
+            "sensor": _sensor((0.35, -0.3, 1.9), (-gap / 2, 0, 0.75), 12, size)}

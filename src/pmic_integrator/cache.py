@@ -447,13 +447,15 @@ def _stratified_rays(p, n, strata, seed, stream, offset, about=None):
     return ray, owner, local, j, k, rng
 
 
-def _gather_rays(scene, source, p, n, strata, seed, offset, about=None):
+def _gather_rays(scene, source, p, n, strata, seed, offset, about=None, caustics_at_near=None):
     """Trace M·N stratified rays per point (about the normals ``about``, default
-    ``n``); return per-ray data in [point][j][k] order."""
+    ``n``); return per-ray data in [point][j][k] order. ``caustics_at_near``: see
+    :func:`~pmic_integrator.gather.trace_gather_rays`."""
     ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, streams.RECORD_GATHER, offset,
                                                     about)
     radiance, distance = trace_gather_rays(scene, source, ray, rng, mi.Bool(True),
-                                           sample_delta=source.photons.irradiance_nodelta is not None)
+                                           sample_delta=source.photons.irradiance_nodelta is not None,
+                                           caustics_at_near=caustics_at_near)
     dr.eval(radiance, distance)
     return owner, j, k, local, radiance, distance
 
@@ -551,9 +553,10 @@ def clamp_records_to_points(index: "RecordIndex", p: mi.Point3f, n: mi.Vector3f,
 
 def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
                     radius: mi.Float, strata, seed: int, offset: float,
-                    sky_openness: float = SKY_GUIDE_OPENNESS) -> CacheRecords:
+                    sky_openness: float = SKY_GUIDE_OPENNESS, caustics_at_near=None) -> CacheRecords:
     """Final-gather irradiance and gradients at (p, n); ``radius`` is the record's R;
-    ``sky_openness``: see :func:`escaped_sky`.
+    ``sky_openness``: see :func:`escaped_sky`; ``caustics_at_near``: see
+    :func:`~pmic_integrator.gather.trace_gather_rays`.
 
     The gather (and so the irradiance and its gradients) is about the surface's
     shading normal (:func:`shading_normals`), the cosine Mitsuba's BSDFs use."""
@@ -564,7 +567,7 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
     rays = m_theta * n_phi
     shading_n = shading_normals(scene, p, n, offset)
     owner, j, k, local, radiance, distance = _gather_rays(scene, source, p, n, strata, seed, offset,
-                                                          shading_n)
+                                                          shading_n, caustics_at_near)
     # E = π/(MN) Σ L for cosine-weighted stratified sampling.
     irradiance = block_sum(radiance, rays) * (math.pi / rays)
 

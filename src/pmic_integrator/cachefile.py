@@ -47,7 +47,9 @@ FORMAT = "pmic-cache"
 #: 14: the sky sampler says whether the sky is even (SkySampler.even): records' guides
 #:     then hold the sky they saw wherever they are.
 #: 15: records keep their gather's nearest hit per azimuth sector (CacheRecords.obstacle_sectors).
-VERSION = 15
+#: 16: gather rays bounce on at diffuse hits closer than two lookup radii
+#:     (GatherSource.near_hit_distance): records differ.
+VERSION = 16
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

@@ -32,7 +32,7 @@ from .emission import is_delta, scene_bbox  # noqa: F401  (scene_bbox re-exporte
 from ._jit import concat, every_nth, opaque_float, rng as make_rng
 from .bsdfs import glossy_beside_diffuse, non_diffuse_context
 from .cache import CacheRecords, RecordIndex
-from .gather import VISIBILITY_LIFT, GatherSource
+from .gather import NEAR_HIT_LOOKUPS, VISIBILITY_LIFT, GatherSource
 from .hashgrid import BallGrid, PointGridPyramid
 from .lights import RecordLights
 from .irradiance import (adapted_lookup_radius, estimate_irradiance, lookup_radius,
@@ -187,6 +187,15 @@ class PreparedScene:
     @property
     def ray_offset(self) -> float:
         return RAY_OFFSET_DIAGONAL * self.length_scale
+
+    def caustics_at_near_hits(self):
+        """What gather rays read for the caustics of a diffuse hit they bounce on
+        (:func:`~pmic_integrator.gather.trace_gather_rays`): the caustic map, its grid
+        and radius, or None (no caustic map, or no near bounces)."""
+        source = self.gather_source
+        if source is None or source.near_hit_distance <= 0 or not self.caustic_map.count:
+            return None
+        return self.caustic_map, self.caustic_grid, self.caustic_radius
 
 
 def scene_fingerprint(scene: mi.Scene) -> str:
@@ -422,6 +431,8 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
             precompute_irradiance(global_map, global_radius, settings.lookup_size, depth_limit),
             global_radius)
         gather_source.caustics_by_gathering = caustic_map.count == 0
+        if depth_limit is None:
+            gather_source.near_hit_distance = NEAR_HIT_LOOKUPS * global_radius
         if gather_source.photons.count == 0:
             # A map of a handful of photons (a tiny max_photon_paths) can leave a half
             # empty: nothing to gather from, so no cache.
@@ -595,7 +606,8 @@ class CacheBuilder:
                                             self.settings.gather_strata,
                                             self.settings.seed + streams.RECORDS + before, self.offset,
                                             cache_mod.EVEN_SKY_OPENNESS if sky is not None and sky.even
-                                            else cache_mod.SKY_GUIDE_OPENNESS)
+                                            else cache_mod.SKY_GUIDE_OPENNESS,
+                                            self.prepared.caustics_at_near_hits())
         all_records = existing.records.extend(records) if existing is not None else records
         index = self.index(all_records)
         if settle:
