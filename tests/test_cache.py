@@ -71,6 +71,75 @@ def test_parallel_placement_matches_sequential_and_covers_everything(max_error, 
     assert covered.all()
 
 
+@pytest.mark.parametrize("count,seed", [(1, 0), (2, 1), (7, 2), (32, 3)])
+def test_the_last_few_candidates_are_walked_as_the_paper_walks_them(count, seed):
+    """A placement of at most PLACEMENT_TAIL candidates is the sequential walk itself
+    (cache._walk_tail, on the CPU): exactly the paper's records."""
+    assert count <= cache.PLACEMENT_TAIL
+    p, n, r = _candidates(count, seed)
+    r = r * 4.0  # large enough that records cover one another
+    selected, rounds = cache.place_records(mi.Point3f(p.T), mi.Vector3f(n.T), mi.Float(r), 0.5)
+    reference = sequential_placement(p.astype(np.float64), n.astype(np.float64), r.astype(np.float64), 0.5)
+    assert list(np.array(selected)) == list(reference)
+    assert rounds == 1
+
+
+def test_placement_compiles_no_kernel_per_candidate_count():
+    """Before: the rounds' last kernels ran on 1-4 candidates (Dr.Jit compiles arrays of
+    one element as scalars) and a render whose placement ended on other counts than its
+    warm-up's compiled 20-30 kernels anew (0.17 s of the material preview's 2.3 s with
+    an empty kernel cache). Now the last few are walked on the CPU: placements of other
+    small counts compile nothing. (A kernel loaded from Dr.Jit's disk cache counts as
+    new to the process too.)"""
+    def run(count, seed):
+        p, n, r = _candidates(count, seed)
+        # Component by component: a 3-vector made from a 2-D NumPy array reads its
+        # components with the count written into a kernel (the test's, not pmic's).
+        cache.place_records(mi.Point3f(*[mi.Float(c) for c in p.T]),
+                            mi.Vector3f(*[mi.Float(c) for c in n.T]), mi.Float(r), 0.5)
+
+    run(900, 4)
+    run(3, 5)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    try:
+        run(1, 6)  # a settled placement's one lost photon
+        run(2, 7)
+        run(5, 8)
+        compiled = [k for k in dr.kernel_history()
+                    if k["type"] == dr.KernelType.JIT and (not k["cache_hit"] or k["cache_disk"])]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert [(k["size"], k["operation_count"]) for k in compiled] == []
+
+
+def test_obstacle_sectors_compile_one_kernel_for_every_record_count():
+    """Dr.Jit's default scatter-min on the CPU reduces into a copy of the target per
+    thread and writes the target's size into the kernel: a kernel per record count
+    (10800 = 1350 records × 8 sectors in the material preview), compiled anew by a
+    render of another seed. Now by atomics (_jit.scatter_min)."""
+    def run(count):
+        rays = 12
+        owner = dr.arange(mi.UInt32, count * rays) // rays
+        local = mi.Vector3f(dr.cos(mi.Float(dr.arange(mi.UInt32, count * rays))), 0.5, 0.5)
+        distance = mi.Float(dr.arange(mi.UInt32, count * rays)) + 1.0
+        out = cache.obstacle_sectors(local, distance, owner, count)
+        dr.eval(out)
+        return np.array(out).reshape(count, cache.OBSTACLE_SECTORS)
+
+    first = run(5)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    try:
+        second = run(9)
+        compiled = [k for k in dr.kernel_history()
+                    if k["type"] == dr.KernelType.JIT and (not k["cache_hit"] or k["cache_disk"])]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert [(k["size"], k["operation_count"]) for k in compiled] == []
+    assert np.array_equal(first, second[:5])  # the same minima, record by record
+
+
 def test_existing_records_are_respected():
     p, n, r = _candidates(800, 3)
     pts, nrm, rad = mi.Point3f(p.T), mi.Vector3f(n.T), mi.Float(r)

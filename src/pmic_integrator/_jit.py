@@ -52,6 +52,20 @@ def concat(parts, dtype):
     return out
 
 
+def scatter_min(target, value, index, active=True) -> None:
+    """``target[index] = min(target[index], value)`` by atomics (min is order free).
+    Not Dr.Jit's default on the CPU, which reduces into a copy of ``target`` per thread
+    and writes ``target``'s size into the kernel: a kernel per size (per record count,
+    so per seed), compiled again by a render whose warm-up had other counts."""
+    dr.scatter_reduce(dr.ReduceOp.Min, target, value, index, active, mode=dr.ReduceMode.Direct)
+
+
+def scatter_count(counts: mi.UInt32, index: mi.UInt32, active=True) -> None:
+    """``counts[index] += 1`` by atomics (see :func:`scatter_min`: the default writes
+    the table's size into the kernel, a kernel per size)."""
+    dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), index, active, mode=dr.ReduceMode.Direct)
+
+
 def every_nth(count: int, stride: int) -> mi.UInt32:
     """Indices 0, stride, 2·stride, … below ``count``."""
     return dr.arange(mi.UInt32, -(-count // stride)) * opaque_u32(stride)

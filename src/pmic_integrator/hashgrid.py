@@ -26,7 +26,7 @@ from typing import Any, Callable
 import drjit as dr
 import mitsuba as mi
 
-from ._jit import concat, mean_value, opaque_u32
+from ._jit import concat, mean_value, opaque_u32, scatter_count
 
 #: Cell coordinates are clamped to this range so that a far-away query cannot overflow
 #: the int32 cell arithmetic; entries never live there, so clamped cells find nothing.
@@ -76,7 +76,7 @@ def _bucket_sort(bucket: mi.UInt32, table_size: int):
     thread timing: the same photons must always give the same grid, cache and image.
     """
     counts = dr.zeros(mi.UInt32, table_size)
-    dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), bucket)
+    scatter_count(counts, bucket)
     starts = dr.prefix_sum(counts)  # exclusive
     cell_start = dr.zeros(mi.UInt32, table_size + 1)
     dr.scatter(cell_start, starts, dr.arange(mi.UInt32, table_size))

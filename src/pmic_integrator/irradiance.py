@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ._jit import opaque_float, opaque_u32
+from ._jit import opaque_float, opaque_u32, scatter_count
 from .hashgrid import PointGrid, PointGridPyramid, _next_pow2, cell_of, hash_cell
 from .photons import PhotonMap
 
@@ -80,9 +80,9 @@ def adapted_lookup_radius(positions: mi.Point3f, radius: float, per_estimate: in
     sample = dr.arange(mi.UInt32, -(-count // stride)) * stride
     for _ in range(iterations):
         inv = dr.opaque(mi.Float, 1.0 / radius)
-        bucket = hash_cell(cell_of(positions, origin, inv), table - 1)
+        bucket = hash_cell(cell_of(positions, origin, inv), opaque_u32(table - 1))
         counts = dr.zeros(mi.UInt32, table)
-        dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), bucket)
+        scatter_count(counts, bucket)
         occupancy = np.array(dr.gather(mi.UInt32, counts, dr.gather(mi.UInt32, bucket, sample)))
         per_disc = math.pi * float(np.quantile(occupancy, DENSITY_QUANTILE)) / CELL_SURFACE_FACES
         if per_disc <= 1.25 * per_estimate:

@@ -80,7 +80,9 @@ class RecordLights:
             return None
         lum = np.array(mi.luminance(irradiance), dtype=np.float64)
         r = np.array(reach, dtype=np.float64)
-        p = np.array(position, dtype=np.float64).T.reshape(-1, 3)  # Dr.Jit gives 3 × N
+        # Component by component: converting a 3-vector array makes a kernel that holds
+        # its size, compiled anew for each record count.
+        p = np.stack([np.array(c, dtype=np.float64) for c in (position.x, position.y, position.z)], 1)
         median = float(np.median(lum))
         bright = np.flatnonzero((lum > LIGHT_CONTRAST * median) & np.isfinite(lum) & (r > 0))
         if bright.size == 0 or not median > 0:

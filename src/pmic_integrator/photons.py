@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
-from ._jit import concat, opaque_float, opaque_u32, rng as make_rng, shading_normal_on_side
+from ._jit import concat, opaque_float, opaque_u32, rng as make_rng, scatter_count, shading_normal_on_side
 from .bsdfs import dark_side, glossy_beside_diffuse, lobes_separable, sample_lobes_apart
 from .emission import emission_bounds, sample_emitter_rays
 from .streams import photon_batch_seed
@@ -298,7 +298,7 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
             # paths) ten more batches of 1024 paths were traced for 0.4 s before one
             # began with a path short enough.
             per_path = dr.zeros(mi.UInt32, batch_paths)
-            dr.scatter_add(per_path, 1, path - opaque_u32(emitted))
+            scatter_count(per_path, path - opaque_u32(emitted))
             before = dr.prefix_sum(per_path)  # photons of the batch's earlier paths
             used_paths = int(dr.count(before < opaque_u32(remaining))[0]) if dr.width(before) else 0
             keep = dr.compress(path < opaque_u32(emitted + used_paths))
