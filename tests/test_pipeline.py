@@ -240,3 +240,31 @@ def test_the_last_batch_keeps_the_path_that_reaches_the_target(monkeypatch):
         stored = photons.trace_photons(scene, photons.GLOBAL, 50_000, -1, seed, 1 << 24, warn=False)
         assert 50_000 <= stored.count < 50_000 + photons.MAX_PHOTON_BOUNCES
         assert len(calls) <= 2, f"seed {seed}: batches of {calls} paths"
+
+
+def test_a_lone_photon_is_traced_as_in_company():
+    """When one photon of a batch is left it goes on beside a dead twin (Dr.Jit
+    compiles one-element arrays as scalars: a lone photon made a whole bounce's kernels
+    of its own, compiled anew whenever a seed left one). Its photons are those it has
+    in a batch of two (each lane has its own random stream), and the twin stores none."""
+    scene = mi.load_dict(cornell(8))
+    bounds = photons.emission_bounds(scene)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    try:
+        alone = photons._trace_batch(scene, photons.GLOBAL, 0, 1, 5, 12, bounds)
+        history = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    # A batch of one path is one element wide at its first bounce only (before: 4).
+    assert sum(1 for k in history if k["size"] == 1 and k["operation_count"] > 100) <= 2
+    pair = photons._trace_batch(scene, photons.GLOBAL, 0, 2, 5, 12, bounds)
+    mine = np.array(pair[5]) == 0
+    assert len(np.array(alone[3])) == mine.sum() > 1
+    assert (np.array(alone[5]) == 0).all()
+    order = np.argsort(np.array(pair[3])[mine], kind="stable")
+    for got, want in zip(alone[:4], pair[:4]):
+        got = np.array(got).reshape(-1, len(np.array(alone[3]))) if np.array(got).ndim > 1 else np.array(got)
+        want = np.array(want)
+        want = want[..., mine] if want.ndim > 1 else want[mine]
+        assert np.array_equal(got, want[..., order] if want.ndim > 1 else want[order])

@@ -242,8 +242,16 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         ray = si.spawn_ray(si.to_world(bs.wo))
         dr.eval(alive, flux, ray, specular_so_far, from_delta, rng.state, rng.inc)
         keep = dr.compress(alive)
+        lone = dr.width(keep) == 1
+        if lone:
+            # One photon left: it goes on beside a dead twin (zero flux: not stored, not
+            # continued). Dr.Jit compiles one-element arrays as scalars: a lone photon
+            # made its own kernels (a whole bounce's, 0.1 s), whenever a seed left one.
+            keep = dr.gather(mi.UInt32, keep, mi.UInt32(0, 0))
         ray = dr.gather(mi.Ray3f, ray, keep)
         flux = dr.gather(mi.Color3f, flux, keep)
+        if lone:
+            flux = dr.select(dr.arange(mi.UInt32, 2) == 0, flux, 0.0)
         specular_so_far = dr.gather(mi.Bool, specular_so_far, keep)
         from_delta = dr.gather(mi.Bool, from_delta, keep)
         path_id = dr.gather(mi.UInt32, path_id, keep)
