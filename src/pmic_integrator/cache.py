@@ -490,15 +490,13 @@ def _stratified_rays(p, n, strata, seed, stream, offset, about=None):
     return ray, owner, local, j, k, rng
 
 
-def _gather_rays(scene, source, p, n, strata, seed, offset, about=None, caustics_at_near=None):
+def _gather_rays(scene, source, p, n, strata, seed, offset, about=None):
     """Trace M·N stratified rays per point (about the normals ``about``, default
-    ``n``); return per-ray data in [point][j][k] order. ``caustics_at_near``: see
-    :func:`~pmic_integrator.gather.trace_gather_rays`."""
+    ``n``); return per-ray data in [point][j][k] order."""
     ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, streams.RECORD_GATHER, offset,
                                                     about)
     radiance, distance = trace_gather_rays(scene, source, ray, rng, mi.Bool(True),
-                                           sample_delta=source.photons.irradiance_nodelta is not None,
-                                           caustics_at_near=caustics_at_near)
+                                           sample_delta=source.photons.irradiance_nodelta is not None)
     dr.eval(radiance, distance)
     return owner, j, k, local, radiance, distance
 
@@ -596,10 +594,9 @@ def clamp_records_to_points(index: "RecordIndex", p: mi.Point3f, n: mi.Vector3f,
 
 def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
                     radius: mi.Float, strata, seed: int, offset: float,
-                    sky_openness: float = SKY_GUIDE_OPENNESS, caustics_at_near=None) -> CacheRecords:
+                    sky_openness: float = SKY_GUIDE_OPENNESS) -> CacheRecords:
     """Final-gather irradiance and gradients at (p, n); ``radius`` is the record's R;
-    ``sky_openness``: see :func:`escaped_sky`; ``caustics_at_near``: see
-    :func:`~pmic_integrator.gather.trace_gather_rays`.
+    ``sky_openness``: see :func:`escaped_sky`.
 
     The gather (and so the irradiance and its gradients) is about the surface's
     shading normal (:func:`shading_normals`), the cosine Mitsuba's BSDFs use."""
@@ -610,7 +607,7 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
     rays = m_theta * n_phi
     shading_n = shading_normals(scene, p, n, offset)
     owner, j, k, local, radiance, distance = _gather_rays(scene, source, p, n, strata, seed, offset,
-                                                          shading_n, caustics_at_near)
+                                                          shading_n)
     # E = π/(MN) Σ L for cosine-weighted stratified sampling.
     irradiance = block_sum(radiance, rays) * (math.pi / rays)
 

@@ -48,8 +48,9 @@ FORMAT = "pmic-cache"
 #:     then hold the sky they saw wherever they are.
 #: 15: records keep their gather's nearest hit per azimuth sector (CacheRecords.obstacle_sectors).
 #: 16: gather rays bounce on at diffuse hits closer than two lookup radii
-#:     (GatherSource.near_hit_distance): records differ; wide and far search steps
-#:     keep 4 photons per cell (GatherSource.WIDE_CELL_PHOTONS), not 16.
+#:     (GatherSource.near_hit_distance), reading there the caustic irradiance
+#:     precomputed at the photons (PhotonMap.irradiance_caustic): records differ; wide
+#:     and far search steps keep 4 photons per cell (GatherSource.WIDE_CELL_PHOTONS).
 VERSION = 16
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).

@@ -19,7 +19,7 @@ from .bsdfs import diffuse_response, lobes_separable, non_diffuse_context  # noq
 from ._jit import opaque_float, segment_blocked, shading_normal_on_side
 from .emission import sample_emitter_direction
 from .hashgrid import PointGrid
-from .irradiance import estimate_irradiance, nearest_photon
+from .irradiance import nearest_photon
 from .photons import PhotonMap
 
 # --- Internal tuning constants -------------------------------------------------------
@@ -203,10 +203,12 @@ class GatherSource:
         return steps
 
     def irradiance_at(self, scene: mi.Scene, si: mi.SurfaceInteraction3f, n: mi.Vector3f,
-                      active, without_delta: bool = False) -> mi.Color3f:
+                      active, without_delta: bool = False, caustic=None) -> mi.Color3f:
         """Precomputed irradiance of the nearest photon on the surface at ``si`` that
         ``si`` can see (0 where there is none); with ``without_delta``, without the
-        direct light of delta lights (the caller samples them itself)."""
+        direct light of delta lights (the caller samples them itself). Lanes in the
+        mask ``caustic`` read its caustic irradiance instead (``irradiance_caustic``):
+        one search serves both kinds of lane."""
         if self.photons.count == 0:
             return dr.zeros(mi.Color3f, dr.width(si.p))
         active = mi.Bool(active)
@@ -218,7 +220,13 @@ class GatherSource:
             index, hit = nearest_photon(photons, grid, si.p, n, reach, retry, octant=octant)
             hit &= retry
             values = photons.irradiance_nodelta if without_delta else photons.irradiance
-            result = dr.select(hit, dr.gather(mi.Color3f, values, index, hit), result)
+            if caustic is None:
+                result = dr.select(hit, dr.gather(mi.Color3f, values, index, hit), result)
+            else:
+                result = dr.select(hit & caustic,
+                                   dr.gather(mi.Color3f, photons.irradiance_caustic, index, hit & caustic),
+                                   dr.select(hit, dr.gather(mi.Color3f, values, index, hit & ~caustic),
+                                             result))
             position = dr.select(hit, dr.gather(mi.Point3f, photons.position, index, hit), position)
             found |= hit
         # The nearest photon may lie across a thin wall (same plane, same normal): the
@@ -231,8 +239,7 @@ class GatherSource:
 
 @dr.syntax
 def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
-                      rng: mi.PCG32, active: mi.Bool, sample_delta: bool = False,
-                      caustics_at_near=None):
+                      rng: mi.PCG32, active: mi.Bool, sample_delta: bool = False):
     """Radiance arriving along ``ray`` from the first diffuse surface it meets (through
     delta/glossy bounces), and the first hit distance. Emission met directly is not
     counted (the renderer samples direct light itself); emission met after a delta or
@@ -250,11 +257,13 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
     the continuation meets is then counted unless the bounce sampled a non-delta lobe
     (the emitter sample holds that light); light reaching the bounced point through
     delta/glossy bounces is counted as at the record: by gathering where there is no
-    caustic map, else from the caustic map at the bounced point
-    (``caustics_at_near``: ``(map, grid, radius)``); its photon, which held all of its
-    light, is not read. (Found by the continuation instead, a caustic under a glass
-    sphere came out 0.4 % dark over a Cornell box: one cosine sample rarely finds a
-    light through a sphere, and the specular-bounce budget ran out on the way.)
+    caustic map, else from the caustic map's irradiance precomputed at the nearest
+    photon (``irradiance_caustic``). (Found by the continuation instead, a caustic
+    under a glass sphere came out 0.4 % dark over a Cornell box: one cosine sample
+    rarely finds a light through a sphere, and the specular-bounce budget ran out on
+    the way. Estimated from the caustic map at each near hit, it cost 0.6 s of a
+    textured room's 1.6 s cache stage, whose rough-plastic floor spreads caustic
+    photons everywhere.)
 
     Returns ``(radiance, distance)``; ``distance`` is +inf for rays that leave the scene.
     """
@@ -295,6 +304,8 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
         # black texel): the searches there are the slowest (no photon is near).
         lit = diffuse & (dr.max(response) > 0)
         near = mi.Bool(False)
+        # Lanes that read a photon: its irradiance, or at a near hit its caustics only.
+        lookup, caustic_lanes = mi.Bool(lit), None
         if dr.hint(near_on, mode="scalar"):
             near = lit & (si.t < near_distance) & (near_bounces < NEAR_HIT_BOUNCES)
             lit &= ~near
@@ -303,12 +314,12 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
             f_near = bsdf.eval(ctx_all, si, si.to_local(ds_near.d), near & (ds_near.pdf > 0))
             lit_near = throughput * f_near * em_near
             radiance += dr.select(near & (ds_near.pdf > 0) & dr.all(dr.isfinite(lit_near)), lit_near, 0.0)
-            if dr.hint(caustics_at_near is not None, mode="scalar"):
-                caustic_map, caustic_grid, caustic_radius = caustics_at_near
-                caustic = throughput * response * estimate_irradiance(
-                    caustic_map, caustic_grid, si.p, n, caustic_radius, active=near)
-                radiance += dr.select(near & dr.all(dr.isfinite(caustic)), caustic, 0.0)
-        irradiance = source.irradiance_at(scene, si, n, lit, without_delta=sample_delta)
+            if dr.hint(source.photons.irradiance_caustic is not None, mode="scalar"):
+                caustic_lanes = near
+            else:
+                lookup = lit
+        irradiance = source.irradiance_at(scene, si, n, lookup, without_delta=sample_delta,
+                                          caustic=caustic_lanes)
         if dr.hint(sample_delta, mode="scalar"):
             u = mi.Point2f(rng.next_float32(), rng.next_float32())
             ds, em_weight = sample_emitter_direction(scene, si, u, True, lit, delta=True)
@@ -316,7 +327,7 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
             direct = mi.Color3f(em_weight) * cos_n
             irradiance += dr.select(lit & (ds.pdf > 0) & dr.all(dr.isfinite(direct)), direct, 0.0)
         reflected = throughput * response * irradiance
-        radiance += dr.select(diffuse & ~near & dr.all(dr.isfinite(reflected)), reflected, 0.0)
+        radiance += dr.select(diffuse & dr.all(dr.isfinite(reflected)), reflected, 0.0)
         rest = active & ~near & (mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy))
         rest &= bounce < GATHER_SPECULAR_BOUNCES
         # A BSDF that ignores lobe masks gave its whole response above: stop there.

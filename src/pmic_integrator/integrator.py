@@ -975,8 +975,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
                        mi.Frame3f(n).to_world(local))
         # Glossy bounces along the ray follow the render's seed, as the rest of the path.
         rng = streams.render_rng(sampler, dr.width(si.p))
-        radiance, _ = trace_gather_rays(scene, self._view.gather_source, ray, rng, active,
-                                        caustics_at_near=self._view.caustics_at_near_hits())
+        radiance, _ = trace_gather_rays(scene, self._view.gather_source, ray, rng, active)
         return radiance * math.pi
 
 

@@ -230,7 +230,7 @@ def precompute_stride(photons_a: int) -> int:
 
 
 def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float,
-                          max_depth: int | None = None) -> PhotonMap:
+                          max_depth: int | None = None, caustics=None) -> PhotonMap:
     """Irradiance at photons (stage 2 of the paper), free of the self-term bias.
 
     The photons of even light paths (half A; one in :func:`precompute_stride` of
@@ -249,6 +249,9 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     ``radius`` is the base radius of the estimates, which shrinks where photons are
     dense (:class:`PointGridPyramid`) so that a disc of B holds ~``per_estimate`` / 2
     photons. ``max_depth`` limits the photons counted (camera paths of bounded length).
+    ``caustics`` (``(map, grid, radius)`` of the caustic map, or None): the caustic
+    map's irradiance is estimated at A's photons too (``irradiance_caustic``), for gather
+    rays that bounce on at a near hit (:func:`~pmic_integrator.gather.trace_gather_rays`).
     """
     if photons.count == 0:
         return PhotonMap.empty()
@@ -271,8 +274,13 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
         nodelta = estimate_irradiance(half_b, grid_b, half_a.position, half_a.normal,
                                       max_depth=max_depth, without_delta_direct=True) * scale
         half_a.irradiance_nodelta = dr.select(dr.all(dr.isfinite(nodelta)), nodelta, 0.0)
+    if caustics is not None:
+        caustic_map, caustic_grid, caustic_radius = caustics
+        caustic = estimate_irradiance(caustic_map, caustic_grid, half_a.position, half_a.normal,
+                                      caustic_radius)
+        half_a.irradiance_caustic = dr.select(dr.all(dr.isfinite(caustic)), caustic, 0.0)
     half_a.paths_emitted = photons.paths_emitted
-    dr.eval(half_a.irradiance, half_a.irradiance_nodelta)
+    dr.eval(half_a.irradiance, half_a.irradiance_nodelta, half_a.irradiance_caustic)
     return half_a
 
 

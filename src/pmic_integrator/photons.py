@@ -74,6 +74,9 @@ class PhotonMap:
     irradiance_nodelta: mi.Color3f = field(default=None)
     #: the photon's light path started at a delta light (point, spot, directional)
     delta_light: mi.Bool = field(default=None)
+    #: stage 2: the caustic map's irradiance at the photon (what a gather ray that
+    #: bounces on at a near hit reads for its caustics); None: no caustic map
+    irradiance_caustic: mi.Color3f = field(default=None)
 
     @property
     def count(self) -> int:
@@ -89,17 +92,19 @@ class PhotonMap:
         nodelta = None if self.irradiance_nodelta is None else \
             dr.gather(mi.Color3f, self.irradiance_nodelta, index)
         delta = None if self.delta_light is None else dr.gather(mi.Bool, self.delta_light, index)
+        caustic = None if self.irradiance_caustic is None else \
+            dr.gather(mi.Color3f, self.irradiance_caustic, index)
         out = PhotonMap(dr.gather(mi.Point3f, self.position, index),
                         dr.gather(mi.Vector3f, self.normal, index),
                         dr.gather(mi.Color3f, self.power, index),
                         dr.gather(mi.UInt32, self.depth, index),
                         dr.gather(mi.Bool, self.specular_path, index),
                         dr.gather(mi.UInt32, self.path, index),
-                        self.paths_emitted, irr, nodelta, delta)
+                        self.paths_emitted, irr, nodelta, delta, caustic)
         # Evaluated now: left lazy, every kernel reading the map would redo the gathers
         # (random memory access) instead of reading the reordered arrays.
         dr.eval(out.position, out.normal, out.power, out.depth, out.specular_path, out.path,
-                out.irradiance, out.irradiance_nodelta, out.delta_light)
+                out.irradiance, out.irradiance_nodelta, out.delta_light, out.irradiance_caustic)
         return out
 
     def split_by_path(self):
@@ -119,7 +124,8 @@ class PhotonMap:
     def nbytes(self) -> int:
         """Bytes held per the arrays above (positions, normals, powers, depths, E, flags)."""
         per = 4 * (3 + 3 + 3 + 1 + 1 + (3 if self.irradiance is not None else 0)
-                   + (3 if self.irradiance_nodelta is not None else 0)) + 1 \
+                   + (3 if self.irradiance_nodelta is not None else 0)
+                   + (3 if self.irradiance_caustic is not None else 0)) + 1 \
             + (1 if self.delta_light is not None else 0)
         return per * self.count
 

@@ -188,15 +188,6 @@ class PreparedScene:
     def ray_offset(self) -> float:
         return RAY_OFFSET_DIAGONAL * self.length_scale
 
-    def caustics_at_near_hits(self):
-        """What gather rays read for the caustics of a diffuse hit they bounce on
-        (:func:`~pmic_integrator.gather.trace_gather_rays`): the caustic map, its grid
-        and radius, or None (no caustic map, or no near bounces)."""
-        source = self.gather_source
-        if source is None or source.near_hit_distance <= 0 or not self.caustic_map.count:
-            return None
-        return self.caustic_map, self.caustic_grid, self.caustic_radius
-
 
 def scene_fingerprint(scene: mi.Scene) -> str:
     """Digest of the scene's parameters, so that an edited scene is rebuilt and a cache
@@ -427,8 +418,13 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
         depth_limit = None if settings.max_depth == -1 else \
             settings.max_depth - 2 - settings.records_read_depth
         # Gather rays read this copy (a fraction of the photons, see precompute_irradiance).
+        # Gather rays that bounce on at a near hit read its caustics from here
+        # (unbounded max_depth only: see GatherSource.near_hit_distance).
+        caustics = (caustic_map, caustic_grid, caustic_radius) \
+            if depth_limit is None and caustic_map.count else None
         gather_source = GatherSource.build(
-            precompute_irradiance(global_map, global_radius, settings.lookup_size, depth_limit),
+            precompute_irradiance(global_map, global_radius, settings.lookup_size, depth_limit,
+                                  caustics),
             global_radius)
         gather_source.caustics_by_gathering = caustic_map.count == 0
         if depth_limit is None:
@@ -606,8 +602,7 @@ class CacheBuilder:
                                             self.settings.gather_strata,
                                             self.settings.seed + streams.RECORDS + before, self.offset,
                                             cache_mod.EVEN_SKY_OPENNESS if sky is not None and sky.even
-                                            else cache_mod.SKY_GUIDE_OPENNESS,
-                                            self.prepared.caustics_at_near_hits())
+                                            else cache_mod.SKY_GUIDE_OPENNESS)
         all_records = existing.records.extend(records) if existing is not None else records
         index = self.index(all_records)
         if settle:
