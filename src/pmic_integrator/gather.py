@@ -131,8 +131,9 @@ class GatherSource:
     #: thousands each), 0.22 s of a 0.48 s record gather. Their nearest photon is then
     #: the nearest of a spread subset, a little further off than the nearest of all,
     #: in light of the same cluster. (16 → 4: the material preview's cache stage
-    #: 0.56 → 0.52 s, the lamp room's 0.87 → 0.84 s, with the same relMSE and mean;
-    #: the bundled scenes' images to 4 digits of relMSE.)
+    #: 0.56 → 0.52 s, the lamp room's 0.87 → 0.84 s, with the same relMSE and mean
+    #: (the lamp room's, fireflies, 0.30-0.41 → 0.21-0.44 over three seeds); the
+    #: bundled scenes' images to 4 digits of relMSE.)
     WIDE_CELL_PHOTONS = 4
 
     @staticmethod
