@@ -221,13 +221,11 @@ class GatherSource:
             index, hit = nearest_photon(photons, grid, si.p, n, reach, retry, octant=octant)
             hit &= retry
             values = photons.irradiance_nodelta if without_delta else photons.irradiance
-            if caustic is None:
-                result = dr.select(hit, dr.gather(mi.Color3f, values, index, hit), result)
-            else:
-                result = dr.select(hit & caustic,
-                                   dr.gather(mi.Color3f, photons.irradiance_caustic, index, hit & caustic),
-                                   dr.select(hit, dr.gather(mi.Color3f, values, index, hit & ~caustic),
-                                             result))
+            value = dr.gather(mi.Color3f, values, index, hit if caustic is None else hit & ~caustic)
+            if caustic is not None:
+                value = dr.select(caustic, dr.gather(mi.Color3f, photons.irradiance_caustic, index,
+                                                     hit & caustic), value)
+            result = dr.select(hit, value, result)
             position = dr.select(hit, dr.gather(mi.Point3f, photons.position, index, hit), position)
             found |= hit
         # The nearest photon may lie across a thin wall (same plane, same normal): the
