@@ -51,7 +51,8 @@ FORMAT = "pmic-cache"
 #:     (GatherSource.near_hit_distance), reading there the caustic irradiance
 #:     precomputed at the photons (PhotonMap.irradiance_caustic): records differ; wide
 #:     and far search steps keep 4 photons per cell (GatherSource.WIDE_CELL_PHOTONS).
-VERSION = 16
+#: 17: grid pyramids keep a bit per cell near a point (PointGridPyramid.near_bits).
+VERSION = 17
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
