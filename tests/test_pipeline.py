@@ -175,11 +175,12 @@ def test_progress_writes_one_line_per_stage_to_a_log():
     assert len(lines) == 1 and "100%" in lines[0] and "1000 stored" in lines[0], lines
 
 
-@pytest.mark.parametrize("max_depth, holds", [(-1, True), (6, False)])
+@pytest.mark.parametrize("max_depth, holds", [(-1, True), (6, False), (63, False), (65, True)])
 def test_final_gather_records_hold_caustics_only_at_unbounded_depth(max_depth, holds):
     """Final-gather records add the caustic map's irradiance (camera paths then skip
     the caustic read where they read the cache); with a bounded max_depth the read
-    stays per vertex, where its depth is known."""
+    stays per vertex, where its depth is known. A max_depth of 64 or more is unbounded
+    (settings.UNBOUNDED_FROM)."""
     from pmic_integrator import scenes
 
     scene = scenes.load_scene("cornell_caustics", resolution=16, spp=1)
@@ -188,6 +189,25 @@ def test_final_gather_records_hold_caustics_only_at_unbounded_depth(max_depth, h
     index = integrator.prepared.index
     assert integrator.prepared.caustic_map.count > 0
     assert index.holds_caustics is holds
+
+
+@pytest.mark.parametrize("max_depth", [64, 65, 1024])
+def test_a_deep_max_depth_renders_as_unbounded(max_depth):
+    """Scenes often ask for a max_depth of 65 (Bitterli's do) to mean "unbounded".
+    Read as a bound, camera paths read the cache at one depth only and path-traced
+    deeper vertices (the lamp room's relMSE 2.1 instead of 0.22); now the image is the
+    unbounded one, bit for bit (photon paths stop at 64 bounces either way)."""
+    from pmic_integrator import scenes
+
+    scene = scenes.load_scene("cornell_caustics", resolution=16, spp=4)
+
+    def image(depth):
+        spec = {"type": "pmic", **SMALL_PMIC, "max_depth": depth}
+        return np.array(mi.render(scene, integrator=mi.load_dict(spec), spp=4, seed=0))
+
+    assert Settings.parse({"max_depth": max_depth}).bounded is False
+    assert Settings.parse({"max_depth": 63}).bounded is True
+    np.testing.assert_array_equal(image(max_depth), image(-1))
 
 
 @pytest.mark.parametrize("name,pays", [("indirect_room", True), ("exterior_envmap", False)])

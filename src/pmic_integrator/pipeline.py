@@ -415,7 +415,7 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
     elif global_map.count:
         # A photon of k interactions read by a gather ray completes a camera path of
         # records_read_depth + 2 + k segments: at most max_depth.
-        depth_limit = None if settings.max_depth == -1 else \
+        depth_limit = None if not settings.bounded else \
             settings.max_depth - 2 - settings.records_read_depth
         # Gather rays read this copy (a fraction of the photons, see precompute_irradiance).
         # Gather rays that bounce on at a near hit read its caustics from here
@@ -482,7 +482,7 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
             dr.eval(index.direct_all)
         else:
             index.direct = soft + delta
-        if settings.max_depth == -1 and prepared.caustic_map.count:
+        if not settings.bounded and prepared.caustic_map.count:
             # And their caustics, so that camera paths read the caustic map at their
             # traced vertex only, not again where they read the cache: every diffuse
             # vertex read it before, and where coats of rough plastic spread caustic

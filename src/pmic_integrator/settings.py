@@ -43,6 +43,15 @@ GATHER_RAYS_RANGE = (16, 16_384)
 DIRECT_SAMPLES_RANGE = (1, 64)
 #: Depths beyond this are unbounded in practice (Russian roulette ends paths long before).
 MAX_DEPTH_LIMIT = 1024
+#: A max_depth of at least this many segments is read as unbounded where paths meet the
+#: cache and the photon maps (:attr:`Settings.bounded`); camera paths still end at
+#: max_depth. Photon paths are cut at 64 bounces when unbounded too
+#: (photons.MAX_PHOTON_BOUNCES): the light of longer paths is 0.9^64 ≈ 0.1 % of an
+#: image whose surfaces reflect 90 %. Read as bounded, the records served one camera
+#: depth only and deeper vertices were path-traced: the lamp room at its original
+#: max_depth of 65 (Bitterli's scenes ask for 65) had relMSE 2.1 against 0.22
+#: unbounded, in 4.9 s against 3.2 s.
+UNBOUNDED_FROM = 64
 #: A lookup_radius must hold at least this many photons per disc on average (by the
 #: requested photon count and the scene's surface area)...
 MIN_PHOTONS_PER_LOOKUP = 1.0
@@ -176,6 +185,12 @@ class Settings:
         """Camera paths path-trace their first diffuse bounce and read the cache one
         bounce later (method pmic, estimator final_gather)."""
         return self.method == "pmic" and self.estimator == "final_gather"
+
+    @property
+    def bounded(self) -> bool:
+        """Whether ``max_depth`` bounds the paths that the cache and the photon maps
+        serve (below :data:`UNBOUNDED_FROM` segments; -1 is unbounded)."""
+        return self.max_depth != -1 and self.max_depth < UNBOUNDED_FROM
 
     @property
     def records_read_depth(self) -> int:
