@@ -210,6 +210,31 @@ def test_a_deep_max_depth_renders_as_unbounded(max_depth):
     np.testing.assert_array_equal(image(max_depth), image(-1))
 
 
+def test_materials_held_in_instances_count():
+    """An instance reports a default diffuse BSDF of its own, not those of the shapes
+    its shapegroup holds: a glass sphere and a rough plastic cube held in instances
+    must still give the scene a caustic map and rough-plastic handling."""
+    T = mi.ScalarTransform4f
+    d = cornell(16, **{"large-box": None, "small-box": None})
+    d["group"] = {"type": "shapegroup",
+                  "cube": {"type": "cube", "to_world": T().scale(0.15),
+                           "bsdf": {"type": "roughplastic", "alpha": 0.2}},
+                  "ball": {"type": "sphere", "center": [0, 0.3, 0], "radius": 0.12,
+                           "bsdf": {"type": "dielectric"}}}
+    d["instance"] = {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                     "to_world": T().translate([0, -0.85, 0])}
+    scene = mi.load_dict(d)
+    info = pipeline.SceneInfo.of(scene)
+    assert info.has_specular and info.has_glossy_coat
+    integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC})
+    integrator.build_cache(scene)
+    assert integrator.prepared.caustic_map.paths_emitted > 0  # traced (if then dropped)
+    assert not any("no delta or glossy" in reason for reason in integrator.prepared.skipped)
+    # Scenes without instances: only the shapes' own BSDFs (an unused one adds nothing).
+    plain = cornell(16, unused={"type": "dielectric", "id": "spare"})
+    assert not pipeline.SceneInfo.of(mi.load_dict(plain)).has_specular
+
+
 @pytest.mark.parametrize("name,pays", [("indirect_room", True), ("exterior_envmap", False)])
 def test_guiding_is_used_where_bounced_light_matters(name, pays):
     """Guiding's record lookups are spent where records owe much of their light to

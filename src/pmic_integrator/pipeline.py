@@ -138,15 +138,13 @@ class SceneInfo:
         bbox = scene_bbox(scene)
         diagonal = float(dr.norm(bbox.extents())) if bbox.valid() else 0.0
         area, has_diffuse, has_specular, has_coat, has_glossy_coat = 0.0, False, False, False, False
-        for shape in scene.shapes():
-            a = _shape_area(shape)
-            area += a
-            flags = _bsdf_flags(shape)
+        for flags in [_bsdf_flags(shape) for shape in scene.shapes()] + _instanced_bsdf_flags(scene):
             has_diffuse |= bool(flags & int(mi.BSDFFlags.Diffuse))
             has_specular |= bool(flags & (int(mi.BSDFFlags.Delta) | int(mi.BSDFFlags.Glossy)))
             has_coat |= bool(flags & int(mi.BSDFFlags.Diffuse)) and \
                 bool(flags & int(mi.BSDFFlags.Delta)) and not flags & int(mi.BSDFFlags.Glossy)
             has_glossy_coat |= bool(glossy_beside_diffuse(flags))
+        area = sum(_shape_area(shape) for shape in scene.shapes())
         if not math.isfinite(diagonal) or diagonal <= 0:
             diagonal = 1.0
         if not math.isfinite(area) or area <= 0:
@@ -713,6 +711,17 @@ def _shape_area(shape) -> float:
 def _bsdf_flags(shape) -> int:
     bsdf = shape.bsdf()
     return int(bsdf.flags()) if bsdf is not None else 0
+
+
+def _instanced_bsdf_flags(scene: mi.Scene) -> list[int]:
+    """The flags of every BSDF in the scene graph when some shape is an instance (of a
+    ``shapegroup``), else none: an instance reports a default diffuse BSDF of its own,
+    not those of the shapes it holds (a glass sphere held in one left the scene without
+    a caustic map, its caustic 0.7-0.9 % of the image dark at 64 spp, and a rough
+    plastic there would not have had its lobes sampled apart)."""
+    if not any(shape.class_name() == "Instance" for shape in scene.shapes()):
+        return []
+    return [int(node.flags()) for node in mi.traverse(scene).hierarchy if isinstance(node, mi.BSDF)]
 
 
 def _shape_order(shape_and_area):
