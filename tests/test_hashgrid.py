@@ -196,35 +196,6 @@ def test_pyramid_queries_beside_a_cluster_do_not_scan_it_at_the_coarse_level():
     assert np.array(radius).max() <= 0.05 + 1e-6
 
 
-def test_pyramid_may_find_is_false_only_where_no_point_is_near():
-    """``may_find`` lets density estimates skip queries with no point in the 27
-    level-0 cells around them: it must never be False where a point lies within the
-    coarsest radius (that estimate would lose it), and it must be False for most
-    queries far from every point (else it saves nothing). A few tiny clusters in a
-    large box leave most queries in empty neighbourhoods."""
-    from pmic_integrator.hashgrid import PointGridPyramid
-
-    rng = np.random.default_rng(6)
-    centres = rng.uniform(-10, 10, (12, 3))
-    points = (centres[rng.integers(0, 12, 4000)] + rng.normal(0, 0.05, (4000, 3))).astype(np.float32)
-    near = (points[rng.integers(0, 4000, 3000)] + rng.uniform(-0.25, 0.25, (3000, 3))).astype(np.float32)
-    far = rng.uniform(-10, 10, (3000, 3)).astype(np.float32)
-    queries = np.concatenate([near, far])
-    radius = 0.2
-    pyramid, _ = PointGridPyramid.build(mi.Point3f(points.T), radius, per_estimate=16)
-    found = np.array(pyramid.may_find(mi.Point3f(queries.T)))
-    d = np.linalg.norm(queries[:, None, :] - points[None, :, :], axis=2).min(1)
-    assert (d < radius).sum() > 1000
-    assert found[d < radius].all()
-    # The 27 cells reach at most 2 cells (0.4) from a query on each axis.
-    empty = d > 2 * radius * math.sqrt(3) + 1e-3
-    assert empty.sum() > 2000
-    assert found[empty].mean() < 0.05
-    # An empty pyramid finds nothing.
-    none, _ = PointGridPyramid.build(mi.Point3f(), radius, per_estimate=16)
-    assert not np.array(none.may_find(mi.Point3f(queries.T))).any()
-
-
 @pytest.mark.parametrize("octant", [False, True])
 def test_one_loop_and_a_loop_per_cell_visit_in_the_same_order(octant):
     """The two ways of walking the cells must give bit-identical float sums (the order

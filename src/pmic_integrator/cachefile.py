@@ -51,7 +51,8 @@ FORMAT = "pmic-cache"
 #:     (GatherSource.near_hit_distance), reading there the caustic irradiance
 #:     precomputed at the photons (PhotonMap.irradiance_caustic): records differ; wide
 #:     and far search steps keep 4 photons per cell (GatherSource.WIDE_CELL_PHOTONS).
-#: 17: grid pyramids keep a bit per cell near a point (PointGridPyramid.near_bits).
+#: 17: a max_depth of 64 or more builds as unbounded (Settings.bounded), and scene info
+#:     reads the materials of instanced shapes (SceneInfo.of).
 VERSION = 17
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).

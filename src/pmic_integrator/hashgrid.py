@@ -521,10 +521,6 @@ class PointGridPyramid:
     level0_mask: int
     #: cell key of each level-0 bucket's middle point (``NO_KEY``: empty bucket)
     level0_key: mi.UInt32
-    #: One bit per hashed level-0 cell, set for every cell within one cell of a point
-    #: (:meth:`may_find`); ``near_mask + 1`` bits.
-    near_bits: mi.UInt32
-    near_mask: int
 
     #: Levels: radius / 2^(LEVELS-1) is the smallest radius used, so a cluster
     #: 4^(LEVELS-1) = 64× denser than the base still costs the same per query.
@@ -532,11 +528,6 @@ class PointGridPyramid:
     #: A query moves one level finer only when its disc would hold more than this many
     #: times ``per_estimate`` (each level quarters the count).
     DENSE_FACTOR = 2.0
-    #: Bits of :attr:`near_bits` per point (a point sets at most 27; a cell's ~10
-    #: points share theirs): a query in an empty neighbourhood finds its bit set by
-    #: a hash collision about once in 20-60. Between 2^16 and 2^28 bits (32 MiB).
-    NEAR_BITS_PER_POINT = 64
-    NEAR_BITS_RANGE = (1 << 16, 1 << 28)
 
     @staticmethod
     def _bucket(cell: mi.Vector3i, level, mask):
@@ -555,8 +546,7 @@ class PointGridPyramid:
                 levels=levels, table_mask=0, cell_start=dr.zeros(mi.UInt32, 2), index=mi.UInt32(),
                 positions=mi.Point3f(), keys=mi.UInt32(), count=0, level0_start=base.cell_start,
                 level0_mask=base.table_mask,
-                level0_key=dr.full(mi.UInt32, NO_KEY, base.table_mask + 1),
-                near_bits=dr.zeros(mi.UInt32, 1), near_mask=31)
+                level0_key=dr.full(mi.UInt32, NO_KEY, base.table_mask + 1))
             return empty, order
         sorted_p = base.positions
         table = _next_pow2(n * levels)
@@ -579,47 +569,18 @@ class PointGridPyramid:
         middle = first + (end - first) // 2
         level0_key = dr.select(filled, dr.gather(mi.UInt32, base.keys, middle, filled),
                                opaque_u32(NO_KEY))
-        near_bits, near_mask = PointGridPyramid._near_cells(sorted_p, base.origin, radius)
         pyramid = PointGridPyramid(
             origin=base.origin, radius=float(radius), per_estimate=float(per_estimate),
             levels=levels, table_mask=table - 1, cell_start=cell_start, index=point,
             positions=dr.gather(mi.Point3f, sorted_p, point),
             keys=dr.gather(mi.UInt32, key, entry_order), count=n,
-            level0_start=base.cell_start, level0_mask=base.table_mask, level0_key=level0_key,
-            near_bits=near_bits, near_mask=near_mask)
-        dr.eval(pyramid.index, pyramid.positions, pyramid.keys, pyramid.level0_key,
-                pyramid.near_bits)
+            level0_start=base.cell_start, level0_mask=base.table_mask, level0_key=level0_key)
+        dr.eval(pyramid.index, pyramid.positions, pyramid.keys, pyramid.level0_key)
         return pyramid, order
-
-    @staticmethod
-    def _near_cells(points: mi.Point3f, origin: mi.Point3f, radius: float):
-        """``(bits, mask)``: the bit set of :attr:`near_bits` over ``points``."""
-        lo, hi = PointGridPyramid.NEAR_BITS_RANGE
-        bits = min(max(_next_pow2(PointGridPyramid.NEAR_BITS_PER_POINT * dr.width(points.x)), lo), hi)
-        words = dr.zeros(mi.UInt32, bits // 32)
-        cell = cell_of(points, origin, dr.opaque(mi.Float, 1.0 / radius))
-        mask = opaque_u32(bits - 1)
-        for j in range(27):
-            bit = hash_cell(cell + _neighbour_offset(mi.UInt32(j)), mask)
-            # Atomics (see scatter_count: the default reduction bakes the size in).
-            dr.scatter_reduce(dr.ReduceOp.Or, words, mi.UInt32(1) << (bit & 31), bit >> 5,
-                              mode=dr.ReduceMode.Direct)
-        return words, bits - 1
-
-    def may_find(self, query: mi.Point3f, active=True) -> mi.Bool:
-        """False where no point lies in the 27 level-0 cells around the query (so no
-        query of any level finds one there: exact); True elsewhere, and rarely also
-        there (a hash collision). Most camera vertices of a room whose caustic photons
-        light a few patches have none near: a 27-cell walk through empty buckets each
-        (0.24 of 0.47 s per million caustic estimates in a room lit through a door)."""
-        inv = dr.opaque(mi.Float, 1.0 / self.radius)
-        bit = hash_cell(cell_of(mi.Point3f(query), self.origin, inv), opaque_u32(self.near_mask))
-        word = dr.gather(mi.UInt32, self.near_bits, bit >> 5, active)
-        return mi.Bool(active) & (((word >> (bit & 31)) & 1) != 0)
 
     def nbytes(self) -> int:
         return (12 + 4 + 4) * dr.width(self.index) + 4 * (self.table_mask + 2) \
-            + 4 * (self.level0_mask + 2) + 4 * (self.level0_mask + 1) + 4 * dr.width(self.near_bits)
+            + 4 * (self.level0_mask + 2) + 4 * (self.level0_mask + 1)
 
     def level_of(self, query: mi.Point3f, active=True):
         """The level each query should search (see the class docs) and its radius."""

@@ -164,7 +164,6 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
     active = mi.Bool(active)
     pyramid = isinstance(grid, PointGridPyramid)
     if pyramid:
-        active = grid.may_find(query_p, active)
         level, radius = grid.level_of(query_p, active)
     else:
         radius = dr.opaque(mi.Float, radius) if isinstance(radius, (int, float)) else mi.Float(radius)
