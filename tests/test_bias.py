@@ -353,9 +353,11 @@ def test_records_in_a_narrow_slot_hold_its_light(seed):
     estimate, a disc wider than the slot, was far off: the records held 0.963 and
     0.942 of the irradiance path traces there (seeds 0, 1; 27 % dark on the inner faces of the
     material preview's arms). Gather hits closer than NEAR_HIT_LOOKUPS lookup radii
-    are now bounced on (an emitter sample and a BSDF sample there): 0.988, 0.989."""
+    are now bounced on (an emitter sample and a BSDF sample there): 0.988, 0.989.
+    (Under an open sky records gather a quarter of gather_rays, pipeline.FIRST_GATHER_SHARE:
+    512 gives them the 128 this test was set with.)"""
     scene = mi.load_dict(sb.slot(0.1))
-    integrator = mi.load_dict({"type": "pmic", "global_photons": 50_000, "gather_rays": 128,
+    integrator = mi.load_dict({"type": "pmic", "global_photons": 50_000, "gather_rays": 512,
                                "seed": seed})
     mi.render(scene, integrator=integrator, spp=1)
     index = integrator._prepared.index

@@ -437,3 +437,36 @@ def test_a_record_tests_visibility_only_towards_what_its_gather_met(monkeypatch)
     e, covered, traced = _interpolate_counting_shadow_rays(index, [[0.05, 0.0, 0.0], [0.2, 0.1, 0.0]],
                                                            monkeypatch)
     assert not covered.any() and (e == 0).all() and traced >= 2
+
+
+def test_blending_a_second_gather_weighs_it_by_its_rays():
+    """CacheRecords.blend: irradiance and gradients are the weighted means, nearest hits
+    the nearer, and guides the mixture of the two distributions, where one gather found
+    no light the other's alone (a valid CDF either way: last bin exactly 1 or all 0)."""
+    from pmic_integrator.cache import GUIDE_BINS
+
+    z = mi.Vector3f(0.0, 0.0, 0.0)
+    one = mi.Vector3f([1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+
+    def records(e, guides, obstacle):
+        cdf = np.concatenate([np.linspace(1.0 / GUIDE_BINS, 1.0, GUIDE_BINS) if g == "even" else
+                              (np.eye(GUIDE_BINS)[0].cumsum() if g == "first" else np.zeros(GUIDE_BINS))
+                              for g in guides]).astype(np.float32)
+        return CacheRecords(mi.Point3f([0.0] * 3, [0.0] * 3, [0.0] * 3), mi.Vector3f([0.0] * 3, [0.0] * 3, [1.0] * 3),
+                            mi.Float([1.0] * 3), mi.Color3f(e, e, e), (one * e[0], z, z), (z, z, z),
+                            obstacle=mi.Float(obstacle), guide=mi.Float(cdf), sky_guide=mi.Float(cdf))
+
+    a = records([1.0, 2.0, 0.0], ["even", "none", "first"], [0.5, 2.0, 1.0])
+    b = records([3.0, 4.0, 8.0], ["first", "even", "none"], [1.0, 1.0, 3.0])
+    out = a.blend(b, 0.75)
+    np.testing.assert_allclose(np.array(out.irradiance)[0], [2.5, 3.5, 6.0], rtol=1e-6)
+    np.testing.assert_allclose(np.array(out.grad_t[0])[0], [0.25 + 0.75 * 3.0] * 3, rtol=1e-6)
+    np.testing.assert_array_equal(np.array(out.obstacle), [0.5, 1.0, 1.0])
+    cdf = np.array(out.guide).reshape(3, GUIDE_BINS)
+    even = np.linspace(1.0 / GUIDE_BINS, 1.0, GUIDE_BINS)
+    np.testing.assert_allclose(cdf[0], 0.25 * even + 0.75 * 1.0, rtol=1e-6)  # first: all mass in bin 0
+    np.testing.assert_allclose(cdf[1], even, rtol=1e-6)  # a found nothing: b alone
+    np.testing.assert_allclose(cdf[2], np.ones(GUIDE_BINS), rtol=1e-6)  # b found nothing: a alone
+    assert np.all(cdf[:, -1] == 1.0)
+    empty = records([0.0] * 3, ["none"] * 3, [1.0] * 3).blend(records([0.0] * 3, ["none"] * 3, [1.0] * 3), 0.5)
+    assert not np.array(empty.guide).any()

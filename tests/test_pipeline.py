@@ -331,3 +331,31 @@ def test_guiding_is_judged_by_the_area_records_cover():
         mi.render(scene, integrator=integrator, spp=1)
         answers.append(integrator.prepared.index.guiding_pays())
     assert answers == [False, False]
+
+
+@pytest.mark.parametrize("name, rounds", [("exterior_envmap", "quarter"), ("cornell_box", "whole"),
+                                          ("courtyard", "completed")])
+def test_open_scenes_gather_a_quarter_of_the_rays(name, rounds, monkeypatch):
+    """Final gather: in open scenes (little of the photons' power bounced) records
+    gather a quarter of gather_rays, and the rest only where bounced light matters
+    (RecordIndex.guiding_pays: not under the exterior's open sky, but in a courtyard);
+    rooms gather all of their rays at once (pipeline.FIRST_GATHER_SHARE)."""
+    from pmic_integrator import cache, scenes
+    from pmic_integrator.settings import rays_strata
+    import scene_builders as sb
+
+    used = []
+    compute = cache.compute_records
+    monkeypatch.setattr(cache, "compute_records",
+                        lambda *a, **k: used.append(a[5]) or compute(*a, **k))
+    scene = mi.load_dict(sb.courtyard(size=(16, 12))) if name == "courtyard" else \
+        scenes.load_scene(name, resolution=16, spp=1)
+    integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC, "gather_rays": 256})
+    integrator.build_cache(scene)
+    assert used
+    quarter, rest = rays_strata(64), rays_strata(256 - 60)
+    expected = {"quarter": {quarter}, "whole": {rays_strata(256)}, "completed": {quarter, rest}}[rounds]
+    assert set(used) == expected
+    if rounds == "completed":
+        assert used[-1] == rest  # once, at the end, over every record
+        assert integrator.prepared.index.guiding_pays()

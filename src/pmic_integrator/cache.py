@@ -182,6 +182,28 @@ class CacheRecords:
             tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_r, other.grad_r)),
             obstacle, shading_normal, guide, sky_guide, sectors)
 
+    def blend(self, other: "CacheRecords", weight: float) -> "CacheRecords":
+        """These records with a second, independent gather at the same places
+        (``other``, from :func:`compute_records` with another stream) counted with
+        ``weight`` (its share of the rays): irradiance and gradients are the weighted
+        means, nearest hits the nearer, and each directional distribution the mixture
+        (a record whose gather found no light in one part takes the other's)."""
+        w = float(weight)
+
+        def mean(a, b):
+            return a * (1.0 - w) + b * w
+
+        def nearer(a, b):
+            return None if a is None or b is None else dr.minimum(a, b)
+
+        return CacheRecords(
+            self.position, self.normal, self.radius, mean(self.irradiance, other.irradiance),
+            tuple(mean(a, b) for a, b in zip(self.grad_t, other.grad_t)),
+            tuple(mean(a, b) for a, b in zip(self.grad_r, other.grad_r)),
+            nearer(self.obstacle, other.obstacle), self.shading_normal,
+            _mix_cdfs(self.guide, other.guide, w), _mix_cdfs(self.sky_guide, other.sky_guide, w),
+            nearer(self.obstacle_sectors, other.obstacle_sectors))
+
     def nbytes(self) -> int:
         return 4 * (3 + 3 + 1 + 3 + 18 + (self.obstacle is not None)
                     + 3 * (self.shading_normal is not None)
@@ -497,11 +519,11 @@ def _stratified_rays(p, n, strata, seed, stream, offset, about=None):
     return ray, owner, local, j, k, rng
 
 
-def _gather_rays(scene, source, p, n, strata, seed, offset, about=None):
+def _gather_rays(scene, source, p, n, strata, seed, offset, about=None,
+                 stream: int = streams.RECORD_GATHER):
     """Trace M·N stratified rays per point (about the normals ``about``, default
     ``n``); return per-ray data in [point][j][k] order."""
-    ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, streams.RECORD_GATHER, offset,
-                                                    about)
+    ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, stream, offset, about)
     radiance, distance = trace_gather_rays(scene, source, ray, rng, mi.Bool(True),
                                            sample_delta=source.photons.irradiance_nodelta is not None)
     dr.eval(radiance, distance)
@@ -601,9 +623,11 @@ def clamp_records_to_points(index: "RecordIndex", p: mi.Point3f, n: mi.Vector3f,
 
 def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
                     radius: mi.Float, strata, seed: int, offset: float,
-                    sky_openness: float = SKY_GUIDE_OPENNESS) -> CacheRecords:
+                    sky_openness: float = SKY_GUIDE_OPENNESS,
+                    stream: int = streams.RECORD_GATHER) -> CacheRecords:
     """Final-gather irradiance and gradients at (p, n); ``radius`` is the record's R;
-    ``sky_openness``: see :func:`escaped_sky`.
+    ``sky_openness``: see :func:`escaped_sky`; ``stream``: of the gather's random
+    numbers (another gives an independent gather at the same records).
 
     The gather (and so the irradiance and its gradients) is about the surface's
     shading normal (:func:`shading_normals`), the cosine Mitsuba's BSDFs use."""
@@ -614,7 +638,7 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
     rays = m_theta * n_phi
     shading_n = shading_normals(scene, p, n, offset)
     owner, j, k, local, radiance, distance = _gather_rays(scene, source, p, n, strata, seed, offset,
-                                                          shading_n)
+                                                          shading_n, stream)
     # E = π/(MN) Σ L for cosine-weighted stratified sampling.
     irradiance = block_sum(radiance, rays) * (math.pi / rays)
 
@@ -721,6 +745,22 @@ def escaped_sky(scene: mi.Scene, direction: mi.Vector3f, distance: mi.Float,
     si.wi = -direction
     sky = mi.Color3f(environment.eval(si, escaped))
     return dr.select(escaped & dr.all(dr.isfinite(sky)), sky, 0.0)
+
+
+def _mix_cdfs(a, b, weight: float):
+    """Per record, the mixture ``(1 - weight)·a + weight·b`` of two :func:`guide_cdfs`
+    distributions (record-major, GUIDE_BINS each); where one of them is empty (all
+    zeros: its gather found no light), the other alone. None if either is None."""
+    if a is None or b is None:
+        return None
+    ca = np.array(a, dtype=np.float64).reshape(-1, GUIDE_BINS)
+    cb = np.array(b, dtype=np.float64).reshape(-1, GUIDE_BINS)
+    wa = np.where(ca[:, -1:] > 0, 1.0 - weight, 0.0)
+    wb = np.where(cb[:, -1:] > 0, weight, 0.0)
+    total = wa + wb
+    cdf = np.where(total > 0, (wa * ca + wb * cb) / np.where(total > 0, total, 1.0), 0.0)
+    cdf[:, -1] = np.where(total[:, 0] > 0, 1.0, 0.0)  # exactly 1, as guide_cdfs leaves it
+    return mi.Float(cdf.astype(np.float32).ravel())
 
 
 def guide_cdfs(owner: mi.UInt32, direction: mi.Vector3f, radiance: mi.Color3f, count: int) -> mi.Float:

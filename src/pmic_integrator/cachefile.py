@@ -53,7 +53,9 @@ FORMAT = "pmic-cache"
 #:     and far search steps keep 4 photons per cell (GatherSource.WIDE_CELL_PHOTONS).
 #: 17: a max_depth of 64 or more builds as unbounded (Settings.bounded), and scene info
 #:     reads the materials of instanced shapes (SceneInfo.of).
-VERSION = 17
+#: 18: in open scenes, final-gather records gather a quarter of gather_rays, the rest
+#:     only where bounced light matters (pipeline.FIRST_GATHER_SHARE).
+VERSION = 18
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

@@ -82,6 +82,17 @@ class PhotonMap:
     def count(self) -> int:
         return dr.width(self.depth) if self.depth is not None else 0
 
+    def bounced_share(self) -> float:
+        """The share of the photons' power (luminance) that bounced off a surface
+        before landing (depth 2 and more): how much of a scene's light is indirect
+        (0 for an empty map)."""
+        if self.count == 0:
+            return 0.0
+        power = mi.luminance(self.power)
+        total = float(dr.sum(power)[0])
+        bounced = float(dr.sum(dr.select(self.depth >= 2, power, 0.0))[0])
+        return bounced / total if total > 0 else 0.0
+
     @staticmethod
     def empty() -> "PhotonMap":
         return PhotonMap(mi.Point3f(), mi.Vector3f(), mi.Color3f(), mi.UInt32(), mi.Bool(), mi.UInt32(), 0)

@@ -204,9 +204,8 @@ class Settings:
 
     @property
     def gather_strata(self) -> tuple[int, int]:
-        """M×N strata of a record's gather with N ≈ πM, as Ward & Heckbert recommend."""
-        m_theta = max(2, int(round(math.sqrt(self.gather_rays / math.pi))))
-        return m_theta, max(2, self.gather_rays // m_theta)
+        """M×N strata of a record's gather (:func:`rays_strata` of ``gather_rays``)."""
+        return rays_strata(self.gather_rays)
 
     def key(self) -> tuple:
         """What the view-independent stages depend on (not hide_emitters, rr_depth or
@@ -214,6 +213,12 @@ class Settings:
         return (self.method, self.max_depth, self.global_photons, self.caustic_photons,
                 self.lookup_size, self.lookup_radius, self.max_error, self.gather_rays,
                 self.final_gather, self.max_photon_paths, self.seed, self.final_gather_camera)
+
+
+def rays_strata(rays: int) -> tuple[int, int]:
+    """M×N strata for about ``rays`` gather rays, N ≈ πM, as Ward & Heckbert recommend."""
+    m_theta = max(2, int(round(math.sqrt(rays / math.pi))))
+    return m_theta, max(2, rays // m_theta)
 
 
 def check_against_scene(settings: Settings, surface_area: float, diagonal: float) -> None:
