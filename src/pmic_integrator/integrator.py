@@ -168,6 +168,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
          - integer
          - 256
          - Final-gather rays per cache record (16-16384, stratified M×N hemisphere).
+           With the final-gather estimator in open scenes (under a quarter of the
+           photons' power bounced), records gather a quarter of them first and the
+           rest only where bounced light matters (``guiding``'s test), since under an
+           open sky records hold little of what the camera sees.
        * - ``final_gather``
          - boolean
          - false
