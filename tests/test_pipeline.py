@@ -359,3 +359,21 @@ def test_open_scenes_gather_a_quarter_of_the_rays(name, rounds, monkeypatch):
     if rounds == "completed":
         assert used[-1] == rest  # once, at the end, over every record
         assert integrator.prepared.index.guiding_pays()
+
+
+def test_a_caustic_map_that_holds_a_rooms_light_through_glass_is_kept():
+    """A room lit by a sky through a thin glass pane: all of its light is caustic, and
+    under a fifth of the caustic pass's paths store a photon (the window is small). Such
+    a map is kept (pipeline.CAUSTIC_MIN_YIELD): gathered instead, that light was 18×
+    noisier per second. A map of a few dozen photons is still dropped (an open sky)."""
+    import scene_builders as sb
+
+    d = sb.window_room(size=(16, 12))
+    d["pane"] = {"type": "rectangle", "bsdf": {"type": "thindielectric"},
+                 "to_world": mi.ScalarTransform4f().translate([0, 1.4, 1.99]).scale([0.6, 0.4, 1])}
+    integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC})
+    integrator.build_cache(mi.load_dict(d))
+    prepared = integrator.prepared
+    assert prepared.caustic_map.count > 0
+    assert prepared.caustic_map.count < 0.25 * SMALL_PMIC["caustic_photons"]  # the case the rule is for
+    assert not any(reason.startswith("caustic map") for reason in prepared.skipped)
