@@ -1,8 +1,9 @@
 #!/usr/bin/env python
 """pmic against ``path`` at equal time on scenes of the kinds the public checks use,
 built in code: a room lit through a door ajar from the next room (diffuse floor, and a
-rough-aluminium floor whose glossy lobe fills the caustic map), and a courtyard under a
-constant sky, with and without a sun.
+rough-aluminium floor whose glossy lobe fills the caustic map), a courtyard under a
+constant sky, with and without a sun, and a room lit by a sky through a thin glass pane
+in its window (all of its light caustic).
 
     python benchmarks/scene_kinds.py                     # 320×240, pmic 16 spp, ~8 minutes
     python benchmarks/scene_kinds.py --scenes courtyard_sun --resolution 160
@@ -48,13 +49,17 @@ def scene_dict(name: str, size):
         d = sb.courtyard(size=size)
     elif name == "courtyard_overcast":
         d = sb.courtyard(size=size, sun=False)
+    elif name == "window_pane":
+        d = sb.window_room(size=size)
+        d["pane"] = {"type": "rectangle", "bsdf": {"type": "thindielectric"},
+                     "to_world": mi.ScalarTransform4f().translate([0, 1.4, 1.99]).scale([0.6, 0.4, 1])}
     else:
         raise ValueError(f"scene must be one of {SCENES}; got {name!r}")
     d["sensor"]["film"].pop("rfilter", None)
     return d
 
 
-SCENES = ("door_diffuse", "door_rough_floor", "courtyard_sun", "courtyard_overcast")
+SCENES = ("door_diffuse", "door_rough_floor", "courtyard_sun", "courtyard_overcast", "window_pane")
 REPEATS = 2
 
 
