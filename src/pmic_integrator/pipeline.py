@@ -158,7 +158,7 @@ class SceneInfo:
     def of(scene: mi.Scene) -> "SceneInfo":
         bbox = scene_bbox(scene)
         diagonal = float(dr.norm(bbox.extents())) if bbox.valid() else 0.0
-        area, has_diffuse, has_specular, has_coat, has_glossy_coat = 0.0, False, False, False, False
+        has_diffuse, has_specular, has_coat, has_glossy_coat = False, False, False, False
         for flags in [_bsdf_flags(shape) for shape in scene.shapes()] + _instanced_bsdf_flags(scene):
             has_diffuse |= bool(flags & int(mi.BSDFFlags.Diffuse))
             has_specular |= bool(flags & (int(mi.BSDFFlags.Delta) | int(mi.BSDFFlags.Glossy)))
@@ -626,7 +626,6 @@ class CacheBuilder:
         n = concat(new_n, mi.Vector3f)
         r = concat(new_r, mi.Float)
         before = existing.records.count if existing is not None else 0
-        sky = self.prepared.sky
         records = cache_mod.compute_records(self.scene, self.prepared.gather_source, p, n, r,
                                             self.strata,
                                             self.settings.seed + streams.RECORDS + before, self.offset,
@@ -640,6 +639,7 @@ class CacheBuilder:
 
     @property
     def sky_openness(self) -> float:
+        """What the records' gathers count as seeing the sky (:func:`cache.escaped_sky`)."""
         sky = self.prepared.sky
         return cache_mod.EVEN_SKY_OPENNESS if sky is not None and sky.even \
             else cache_mod.SKY_GUIDE_OPENNESS
