@@ -372,8 +372,76 @@ def test_a_caustic_map_that_holds_a_rooms_light_through_glass_is_kept():
     d["pane"] = {"type": "rectangle", "bsdf": {"type": "thindielectric"},
                  "to_world": mi.ScalarTransform4f().translate([0, 1.4, 1.99]).scale([0.6, 0.4, 1])}
     integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC})
-    integrator.build_cache(mi.load_dict(d))
+    stats = integrator.build_cache(mi.load_dict(d))
     prepared = integrator.prepared
-    assert prepared.caustic_map.count > 0
-    assert prepared.caustic_map.count < 0.25 * SMALL_PMIC["caustic_photons"]  # the case the rule is for
+    caustic = prepared.caustic_map
+    assert caustic.count > 0
+    # The caustic pass's own photons (the global pass's come after them: numbered past
+    # its paths) are the case the rule is for.
+    own = int(dr.count(caustic.path < caustic.paths_emitted)[0])
+    assert own < 0.25 * SMALL_PMIC["caustic_photons"]
+    assert stats["photons_caustic_from_global"] == caustic.count - own > 0
     assert not any(reason.startswith("caustic map") for reason in prepared.skipped)
+
+
+def _pane_room():
+    import scene_builders as sb
+
+    d = sb.window_room(size=(16, 12))
+    d["pane"] = {"type": "rectangle", "bsdf": {"type": "thindielectric"},
+                 "to_world": mi.ScalarTransform4f().translate([0, 1.4, 1.99]).scale([0.6, 0.4, 1])}
+    return d
+
+
+@pytest.mark.parametrize("floor", ["diffuse", "roughplastic"])
+def test_the_global_passs_caustic_photons_join_the_caustic_map(floor):
+    """photons.merge_caustic_photons: the global pass's L S+ D photons of odd paths are
+    added, and every photon of a path both passes sample alike is weighed by the paths
+    of both (N_c + N_g / 2). Photons whose path the caustic pass sampled otherwise
+    (lobes apart, off a rough plastic floor) keep their power."""
+    d = _pane_room()
+    if floor == "roughplastic":
+        d["floor"]["bsdf"] = {"type": "roughplastic", "alpha": 0.2}
+    scene = mi.load_dict(d)
+    glob = photons.trace_photons(scene, photons.GLOBAL, 20_000, -1, 0, 1 << 22, warn=False)
+    caustic = photons.trace_photons(scene, photons.CAUSTIC, 4_000, -1, 0, 1 << 22, warn=False)
+    merged = photons.merge_caustic_photons(caustic, glob)
+    n_c, n_g = caustic.paths_emitted, glob.paths_emitted
+    total = n_c + n_g // 2
+    joins = np.array(glob.specular_path & glob.shared_path & (glob.depth >= 2) & ((glob.path & 1) == 1))
+    assert joins.sum() > caustic.count / 2  # most of this room's light is caustic
+    assert merged.count == caustic.count + joins.sum()
+    assert merged.shared_path is None and merged.paths_emitted == n_c
+    power = np.array(merged.power).T if np.array(merged.power).shape[0] == 3 else np.array(merged.power)
+    own_power = np.array(caustic.power).T
+    shared = np.array(caustic.shared_path)
+    scale = np.where(shared, n_c / total, 1.0)[:, None]
+    assert np.allclose(power[:caustic.count], own_power * scale, rtol=1e-6, atol=0)
+    assert np.allclose(power[caustic.count:], np.array(glob.power).T[joins] * (n_g / total), rtol=1e-6, atol=0)
+    path = np.array(merged.path)
+    assert np.all(path[caustic.count:] >= n_c) and np.all((path[caustic.count:] - n_c) % 2 == 1)
+    if floor == "roughplastic":
+        assert not shared.all()  # photons bounced off the floor's glossy lobe
+        assert not np.array(glob.shared_path).all()
+    else:
+        assert shared.all()
+    # Both estimate the same light: the caustic photons' power per path, merged or the
+    # global pass's alone, agree within their noise (photon counts ~ Poisson).
+    floor_power = lambda m, p: float(p[np.abs(np.array(m.position.y)) < 1e-3].sum())
+    g_all = np.array(glob.specular_path & glob.shared_path & (glob.depth >= 2))
+    g_pos_y = np.array(glob.position.y)[g_all]
+    g_floor = float(np.array(glob.power).T[g_all][np.abs(g_pos_y) < 1e-3].sum())
+    m_floor = floor_power(merged, power)
+    if floor == "diffuse":
+        n = (np.abs(np.array(merged.position.y)) < 1e-3).sum()
+        assert abs(m_floor / g_floor - 1) < 4 / np.sqrt(n)
+
+
+def test_caustic_maps_of_rooms_lit_through_glass_hold_the_global_passs_photons():
+    """In the pipeline: the pane room's caustic map holds the global pass's caustic
+    photons (more than its own there), and the global map carries no merge flags on."""
+    integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC})
+    stats = integrator.build_cache(mi.load_dict(_pane_room()))
+    prepared = integrator.prepared
+    assert stats["photons_caustic_from_global"] > stats["photons_caustic"] / 2
+    assert prepared.caustic_map.shared_path is None and prepared.global_map.shared_path is None

@@ -55,7 +55,9 @@ FORMAT = "pmic-cache"
 #:     reads the materials of instanced shapes (SceneInfo.of).
 #: 18: in open scenes, final-gather records gather a quarter of gather_rays, the rest
 #:     only where bounced light matters (pipeline.FIRST_GATHER_SHARE).
-VERSION = 18
+#: 19: caustic maps hold the global pass's caustic photons of odd paths too
+#:     (photons.merge_caustic_photons), all weighed by both passes' paths.
+VERSION = 19
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

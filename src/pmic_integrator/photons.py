@@ -12,7 +12,8 @@ Two maps are made:
   hit included (it becomes the precomputed irradiance that final-gather rays read);
 * the **caustic map**: photons of paths light → one or more specular or glossy bounces
   → a surface with a diffuse lobe (L S+ D). Caustic passes stop a path at its first
-  non-specular bounce, since it can no longer produce a caustic photon.
+  non-specular bounce, since it can no longer produce a caustic photon. The global
+  pass's own L S+ D photons join it (:func:`merge_caustic_photons`).
 """
 from __future__ import annotations
 
@@ -77,6 +78,10 @@ class PhotonMap:
     #: stage 2: the caustic map's irradiance at the photon (what a gather ray that
     #: bounces on at a near hit reads for its caustics); None: no caustic map
     irradiance_caustic: mi.Color3f = field(default=None)
+    #: stage 1 only (None once the maps are merged, :func:`merge_caustic_photons`): no
+    #: bounce of the photon's path sampled lobes apart (:func:`sample_lobes_apart`), so
+    #: the global and caustic passes sampled it alike
+    shared_path: mi.Bool = field(default=None)
 
     @property
     def count(self) -> int:
@@ -105,17 +110,19 @@ class PhotonMap:
         delta = None if self.delta_light is None else dr.gather(mi.Bool, self.delta_light, index)
         caustic = None if self.irradiance_caustic is None else \
             dr.gather(mi.Color3f, self.irradiance_caustic, index)
+        shared = None if self.shared_path is None else dr.gather(mi.Bool, self.shared_path, index)
         out = PhotonMap(dr.gather(mi.Point3f, self.position, index),
                         dr.gather(mi.Vector3f, self.normal, index),
                         dr.gather(mi.Color3f, self.power, index),
                         dr.gather(mi.UInt32, self.depth, index),
                         dr.gather(mi.Bool, self.specular_path, index),
                         dr.gather(mi.UInt32, self.path, index),
-                        self.paths_emitted, irr, nodelta, delta, caustic)
+                        self.paths_emitted, irr, nodelta, delta, caustic, shared)
         # Evaluated now: left lazy, every kernel reading the map would redo the gathers
         # (random memory access) instead of reading the reordered arrays.
         dr.eval(out.position, out.normal, out.power, out.depth, out.specular_path, out.path,
-                out.irradiance, out.irradiance_nodelta, out.delta_light, out.irradiance_caustic)
+                out.irradiance, out.irradiance_nodelta, out.delta_light, out.irradiance_caustic,
+                out.shared_path)
         return out
 
     def split_by_path(self):
@@ -191,9 +198,10 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         scene, mi.Float(0.0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
         mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True), bounds=bounds)
     specular_so_far = dr.full(mi.Bool, True, n_paths)
+    shared = dr.full(mi.Bool, True, n_paths)  # no bounce sampled lobes apart (yet)
     from_delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
-    out = {k: [] for k in ("position", "normal", "power", "depth", "specular", "path", "delta")}
+    out = {k: [] for k in ("position", "normal", "power", "depth", "specular", "path", "delta", "shared")}
     bounces = min(max_store_depth, MAX_PHOTON_BOUNCES)
     for bounce in range(1, bounces + 1):
         live = dr.width(path_id)
@@ -219,7 +227,7 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         n = mi.Vector3f(si.n)
         n = dr.select(dr.dot(n, -ray.d) < 0, -n, n)
         stored_power = flux * shading_normal_factors(si, n, -ray.d)
-        dr.eval(store, si.p, n, stored_power, specular_so_far)
+        dr.eval(store, si.p, n, stored_power, specular_so_far, shared)
         idx = dr.compress(store)
         if dr.width(idx) > 0:
             out["position"].append(dr.gather(mi.Point3f, si.p, idx))
@@ -229,6 +237,7 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
             out["specular"].append(dr.gather(mi.Bool, specular_so_far, idx))
             out["path"].append(dr.gather(mi.UInt32, path_id, idx))
             out["delta"].append(dr.gather(mi.Bool, from_delta, idx))
+            out["shared"].append(dr.gather(mi.Bool, shared, idx))
         if bounce == bounces:
             break
         u1, u2 = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
@@ -241,7 +250,9 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         # that fallback estimates leave to the caustic map: there half of the bounces
         # took the weak glossy lobe and ended, and 200k photons took 1.2 s instead of
         # 0.7 s in the 97k-triangle room of benchmarks/stage_costs.py.)
-        apart = valid & glossy_beside_diffuse(flags) & separable & (kind == CAUSTIC)
+        lobes = valid & glossy_beside_diffuse(flags) & separable
+        shared &= ~lobes  # the two passes sample this bounce differently
+        apart = lobes & (kind == CAUSTIC)
         bs, bsdf_weight = bsdf.sample(ctx, si, u1, u2, valid & ~apart)
         bs_apart, weight_apart = sample_lobes_apart(bsdf, si, u1, u2, apart, ctx.mode)
         bs[apart] = bs_apart
@@ -257,7 +268,7 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         alive &= rng.next_float32() < survive
         flux = flux * bsdf_weight / dr.maximum(survive, 1e-8)
         ray = si.spawn_ray(si.to_world(bs.wo))
-        dr.eval(alive, flux, ray, specular_so_far, from_delta, rng.state, rng.inc)
+        dr.eval(alive, flux, ray, specular_so_far, shared, from_delta, rng.state, rng.inc)
         keep = dr.compress(alive)
         lone = dr.width(keep) == 1
         if lone:
@@ -271,14 +282,15 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
             flux = dr.select(dr.arange(mi.UInt32, 2) == 0, flux, 0.0)
         specular_so_far = dr.gather(mi.Bool, specular_so_far, keep)
         from_delta = dr.gather(mi.Bool, from_delta, keep)
+        shared = dr.gather(mi.Bool, shared, keep)
         path_id = dr.gather(mi.UInt32, path_id, keep)
         rng.state = dr.gather(mi.UInt64, rng.state, keep)
         rng.inc = dr.gather(mi.UInt64, rng.inc, keep)
-        dr.eval(ray, flux, specular_so_far, from_delta, path_id, rng.state, rng.inc)
+        dr.eval(ray, flux, specular_so_far, shared, from_delta, path_id, rng.state, rng.inc)
     return (concat(out["position"], mi.Point3f), concat(out["normal"], mi.Vector3f),
             concat(out["power"], mi.Color3f), concat(out["depth"], mi.UInt32),
             concat(out["specular"], mi.Bool), concat(out["path"], mi.UInt32),
-            concat(out["delta"], mi.Bool))
+            concat(out["delta"], mi.Bool), concat(out["shared"], mi.Bool))
 
 
 def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed: int,
@@ -309,7 +321,7 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     bounds = emission_bounds(scene)  # once: every batch shoots from the same rectangles
     while stored < target and emitted < max_paths:
         batch_paths = int(min(batch_paths, max_paths - emitted))
-        pos, nrm, pwr, dep, spec, path, delta = _trace_batch(
+        pos, nrm, pwr, dep, spec, path, delta, shared = _trace_batch(
             scene, kind, emitted, batch_paths, photon_batch_seed(seed, batch, kind == CAUSTIC),
             max_store_depth, bounds)
         got = dr.width(dep)
@@ -327,11 +339,11 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
             before = dr.prefix_sum(per_path)  # photons of the batch's earlier paths
             used_paths = int(dr.count(before < opaque_u32(remaining))[0]) if dr.width(before) else 0
             keep = dr.compress(path < opaque_u32(emitted + used_paths))
-            pos, nrm, pwr, dep, spec, path, delta = (dr.gather(type(a), a, keep)
-                                                     for a in (pos, nrm, pwr, dep, spec, path, delta))
+            pos, nrm, pwr, dep, spec, path, delta, shared = (
+                dr.gather(type(a), a, keep) for a in (pos, nrm, pwr, dep, spec, path, delta, shared))
             got = dr.width(keep)
         if got:
-            parts.append((pos, nrm, pwr, dep, spec, path, delta))
+            parts.append((pos, nrm, pwr, dep, spec, path, delta, shared))
         stored += got
         emitted += used_paths
         batch += 1
@@ -361,7 +373,59 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     specular = concat([p[4] for p in parts], mi.Bool)
     path = concat([p[5] for p in parts], mi.UInt32)
     delta = concat([p[6] for p in parts], mi.Bool)
-    dr.eval(position, normal, power, depth, specular, path)
+    shared = concat([p[7] for p in parts], mi.Bool)
+    dr.eval(position, normal, power, depth, specular, path, shared)
     log.info("pmic: %d %s photons from %d paths in %.2f s", stored, kind, emitted,
              time.perf_counter() - start)
-    return PhotonMap(position, normal, power, depth, specular, path, emitted, delta_light=delta)
+    return PhotonMap(position, normal, power, depth, specular, path, emitted, delta_light=delta,
+                     shared_path=shared)
+
+
+def merge_caustic_photons(caustic: PhotonMap, global_map: PhotonMap) -> PhotonMap:
+    """The caustic map with the caustic photons of the global map's odd paths added.
+
+    The global pass samples light paths exactly as the caustic pass does until their
+    first diffuse bounce (but where a caustic pass samples lobes apart: photons of such
+    paths are left as they are, see ``shared_path``), so its L S+ D photons are caustic
+    photons too, from other paths: the N_c caustic paths and the N_g / 2 odd global
+    paths together are N_c + N_g / 2 samples of the same paths, and each photon's power
+    is rescaled to that count. Where light reaches a room through glass only, nearly
+    all the room's light is caustic and the caustic pass's yield is low (a window's
+    pane, 1 % of the sky's paths): its 18k photons left the room's mean 1-2 % dark from
+    one photon seed to the next; with the global pass's 200k paths' share, 2.6 times as
+    many caustic photons fell on its floor.
+
+    Odd paths only: irradiance is precomputed at photons of even paths
+    (:func:`~pmic_integrator.irradiance.precompute_irradiance`), their caustic part from
+    this map, which must not hold the very photon it is estimated at (its own power
+    adds 3/k of the estimate: the bias the halves exist to avoid).
+    """
+    if caustic.count == 0 or global_map.count == 0 or caustic.shared_path is None \
+            or global_map.shared_path is None:
+        return caustic
+    n_caustic = caustic.paths_emitted
+    n_odd = global_map.paths_emitted // 2
+    if n_caustic == 0 or n_odd == 0:
+        return caustic
+    extra = dr.compress(global_map.specular_path & global_map.shared_path & (global_map.depth >= 2)
+                        & ((global_map.path & 1) == 1))
+    merged = caustic.select(dr.arange(mi.UInt32, caustic.count))
+    total = n_caustic + n_odd
+    # Opaque: the path counts move with the photon seed (constants: a kernel per seed).
+    merged.power = dr.select(merged.shared_path, merged.power * opaque_float(n_caustic / total),
+                             merged.power)
+    if dr.width(extra):
+        more = global_map.select(extra)
+        more.power = more.power * opaque_float(global_map.paths_emitted / total)
+        more.path = more.path + opaque_u32(n_caustic)  # unique path indices in the merged map
+        merged = PhotonMap(concat([merged.position, more.position], mi.Point3f),
+                           concat([merged.normal, more.normal], mi.Vector3f),
+                           concat([merged.power, more.power], mi.Color3f),
+                           concat([merged.depth, more.depth], mi.UInt32),
+                           concat([merged.specular_path, more.specular_path], mi.Bool),
+                           concat([merged.path, more.path], mi.UInt32),
+                           n_caustic, delta_light=concat([merged.delta_light, more.delta_light], mi.Bool))
+    merged.shared_path = None
+    dr.eval(merged.position, merged.normal, merged.power, merged.depth, merged.specular_path,
+            merged.path, merged.delta_light)
+    return merged

@@ -37,7 +37,7 @@ from .hashgrid import BallGrid, PointGridPyramid
 from .lights import RecordLights
 from .irradiance import (adapted_lookup_radius, estimate_irradiance, lookup_radius,
                          precompute_irradiance, sort_into_grid)
-from .photons import CAUSTIC, GLOBAL, PhotonMap, trace_photons
+from .photons import CAUSTIC, GLOBAL, PhotonMap, merge_caustic_photons, trace_photons
 from .settings import Settings, check_against_scene, rays_strata
 from .skylight import SkySampler
 
@@ -313,6 +313,10 @@ def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
     stats["time_photons"] = time.perf_counter() - t0
     stats["photons_global"] = global_map.count
     stats["photons_caustic"] = caustic_map.count
+    # (of which the global pass's: merge_caustic_photons numbers their paths after the
+    # caustic pass's)
+    stats["photons_caustic_from_global"] = int(dr.count(caustic_map.path >= caustic_map.paths_emitted)[0]) \
+        if caustic_map.count else 0
     stats["paths_emitted"] = global_map.paths_emitted + caustic_map.paths_emitted
     stats["paths_emitted_caustic"] = caustic_map.paths_emitted
 
@@ -412,6 +416,9 @@ def trace_maps(scene, settings: Settings, info: SceneInfo, need_global: bool, ne
             paths_traced = caustic_map.paths_emitted
             caustic_map = PhotonMap.empty()
             caustic_map.paths_emitted = paths_traced  # (stats: the work done)
+        else:
+            caustic_map = merge_caustic_photons(caustic_map, global_map)
+    global_map.shared_path = caustic_map.shared_path = None  # (only the merge reads them)
     return global_map, caustic_map
 
 
