@@ -314,3 +314,64 @@ def test_an_environment_map_with_nan_or_inf_texels_is_refused_naming_it():
             error = error.__cause__
         refusal = [e for e in chain if isinstance(e, ValueError) and "NaN/Inf" in str(e)]
         assert refusal and "'sky'" in str(refusal[0]) and "1 NaN/Inf texel;" in str(refusal[0])
+
+
+def _rough_floor_rooms(size=(32, 24)):
+    import scene_builders as sb
+
+    return mi.load_dict(sb.two_rooms(size=size, floor_bsdf={"type": "roughconductor", "alpha": 0.25,
+                                                             "material": "Al"}))
+
+
+def test_deferred_caustic_reads_give_the_image_of_reads_in_the_loop(monkeypatch):
+    """In pmic's own render the caustic-map reads wait for the end of the camera loop
+    and are made over the lanes that can find a photon (PMICIntegrator._deferred_caustics);
+    read in the loop instead (as for a caller of sample() alone), the image is the same
+    up to the order of float sums. Two renders with deferral are bit-identical."""
+    scene = _rough_floor_rooms()
+    spec = {"type": "pmic", **SMALL}
+    integrator = mi.load_dict(spec)
+    deferred = np.array(mi.render(scene, integrator=integrator, spp=4, seed=3))
+    assert integrator._defers_caustics(integrator.prepared)
+    again = np.array(mi.render(scene, integrator=integrator, spp=4, seed=3))
+    assert np.array_equal(deferred, again)
+    monkeypatch.setattr(PMICIntegrator, "_defers_caustics", lambda self, prepared: False)
+    inline = np.array(mi.render(scene, integrator=integrator, spp=4, seed=3))
+    assert np.allclose(deferred, inline, rtol=1e-4, atol=1e-6)
+    assert not np.array_equal(deferred, np.zeros_like(deferred))
+
+
+def test_deferred_caustic_reads_run_in_passes_that_bound_their_memory(monkeypatch):
+    """With reads deferred, a wavefront holds at most DEFERRED_WAVEFRONT samples: the
+    render runs in several passes, each seeded on its own, with the same mean (within
+    the noise of 16 samples of a dim room lit through a door)."""
+    from pmic_integrator import camera, integrator as integrator_mod
+
+    scene = _rough_floor_rooms(size=(16, 12))
+    spec = {"type": "pmic", **SMALL}
+    passes = []
+    original = camera.pass_counts
+
+    def counted(film, spp, max_wavefront=camera.MAX_WAVEFRONT):
+        counts = original(film, spp, max_wavefront)
+        passes.append(counts)
+        return counts
+
+    monkeypatch.setattr(camera, "pass_counts", counted)
+    whole = np.array(mi.render(scene, integrator=mi.load_dict(spec), spp=16, seed=0))
+    assert passes[-1] == [16]
+    monkeypatch.setattr(integrator_mod, "DEFERRED_WAVEFRONT", 16 * 12 * 4)
+    split = np.array(mi.render(scene, integrator=mi.load_dict(spec), spp=16, seed=0))
+    assert passes[-1] == [4, 4, 4, 4]
+    assert np.isfinite(split).all()
+    assert abs(split.mean() / whole.mean() - 1) < 0.15
+    assert not np.array_equal(split, whole)
+
+
+def test_pass_counts_split_a_wavefront_at_the_bound():
+    from pmic_integrator import camera
+
+    film = mi.load_dict({"type": "hdrfilm", "width": 10, "height": 10, "rfilter": {"type": "box"}})
+    assert camera.pass_counts(film, 7) == [7]
+    assert camera.pass_counts(film, 7, max_wavefront=300) == [3, 3, 1]
+    assert camera.pass_counts(film, 7, max_wavefront=50) == [1] * 7  # at least one per pixel

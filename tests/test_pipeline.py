@@ -445,3 +445,56 @@ def test_caustic_maps_of_rooms_lit_through_glass_hold_the_global_passs_photons()
     prepared = integrator.prepared
     assert stats["photons_caustic_from_global"] > stats["photons_caustic"] / 2
     assert prepared.caustic_map.shared_path is None and prepared.global_map.shared_path is None
+
+
+def test_normal_bins_rule_out_only_estimates_that_are_zero():
+    """irradiance.may_count_photons: wherever a caustic estimate is not 0 it says
+    "may" (checked at points spread over a room's surfaces and just off them, with
+    their normals and random ones), and it rules out the far side of a 4 cm wall whose
+    other side holds the photons (the rough floor's caustic in the lit room)."""
+    import scene_builders as sb
+    from pmic_integrator import irradiance
+
+    d = sb.two_rooms(size=(16, 12), floor_bsdf={"type": "roughconductor", "alpha": 0.25, "material": "Al"})
+    scene = mi.load_dict(d)
+    integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC})
+    integrator.build_cache(scene)
+    prepared = integrator.prepared
+    caustic = prepared.caustic_map
+    assert caustic.count > 1000
+    bins = irradiance.NormalBins.build(caustic, prepared.caustic_grid)
+    rng = np.random.default_rng(5)
+    # Queries at photons, moved up to two radii, with the photon's normal or a random one.
+    pick = mi.UInt32(rng.integers(0, caustic.count, 20_000).astype(np.uint32))
+    p = dr.gather(mi.Point3f, caustic.position, pick)
+    shift = rng.normal(size=(3, 20_000)).astype(np.float32) * prepared.caustic_radius
+    p = p + mi.Vector3f(shift)
+    n = dr.gather(mi.Vector3f, caustic.normal, pick)
+    random_n = rng.normal(size=(3, 20_000)).astype(np.float32)
+    random_n /= np.linalg.norm(random_n, axis=0)
+    use_random = mi.Bool(rng.random(20_000) < 0.3)
+    n = dr.select(use_random, mi.Vector3f(random_n), n)
+    estimate = np.array(mi.luminance(irradiance.estimate_irradiance(
+        caustic, prepared.caustic_grid, p, n, prepared.caustic_radius)))
+    may = np.array(irradiance.may_count_photons(bins, p, n))
+    assert (estimate > 0).sum() > 1500
+    assert np.all(may[estimate > 0])
+    assert not may.all()  # it does rule some out
+    # A closed box split by a 2 cm wall, lit on the left, whose rough metal floor puts
+    # caustic photons on the wall's left face: on its right face (dark) no estimate
+    # can count them, and the bins say so.
+    d = sb.thin_wall_room(thickness=0.02)
+    d["shell_floor"]["bsdf"] = {"type": "roughconductor", "alpha": 0.25, "material": "Al"}
+    integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC})
+    integrator.build_cache(mi.load_dict(d))
+    prepared = integrator.prepared
+    bins = irradiance.NormalBins.build(prepared.caustic_map, prepared.caustic_grid)
+    y, z = np.meshgrid(np.linspace(-0.4, 0.4, 9), np.linspace(-0.4, 0.4, 9))
+    left = mi.Point3f(mi.Float(np.full(81, -0.0101, np.float32)), mi.Float(y.ravel().astype(np.float32)),
+                      mi.Float(z.ravel().astype(np.float32)))
+    lit = np.array(mi.luminance(irradiance.estimate_irradiance(
+        prepared.caustic_map, prepared.caustic_grid, left, mi.Vector3f(-1, 0, 0), prepared.caustic_radius)))
+    assert (lit > 0).mean() > 0.5  # the lit face has caustic light
+    right = mi.Point3f(-left.x, left.y, left.z)
+    assert not np.array(irradiance.may_count_photons(bins, right, mi.Vector3f(1, 0, 0))).any()
+    assert np.array(irradiance.may_count_photons(bins, left, mi.Vector3f(-1, 0, 0)))[lit > 0].all()

@@ -29,12 +29,12 @@ def film_extent(film: mi.Film) -> mi.ScalarVector2u:
     return size
 
 
-def pass_counts(film: mi.Film, spp: int) -> list[int]:
+def pass_counts(film: mi.Film, spp: int, max_wavefront: int = MAX_WAVEFRONT) -> list[int]:
     """Samples per pixel of each pass: all in one unless the wavefront would exceed
-    ``MAX_WAVEFRONT``."""
+    ``max_wavefront`` (at most ``MAX_WAVEFRONT``) samples."""
     extent = film_extent(film)
     pixels = int(extent[0]) * int(extent[1])
-    per_pass = max(1, min(spp, MAX_WAVEFRONT // max(pixels, 1)))
+    per_pass = max(1, min(spp, min(max_wavefront, MAX_WAVEFRONT) // max(pixels, 1)))
     counts = [per_pass] * (spp // per_pass)
     if spp % per_pass:
         counts.append(spp % per_pass)
