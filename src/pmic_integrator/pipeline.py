@@ -114,6 +114,18 @@ RAY_OFFSET_DIAGONAL = 1e-5
 LENGTH_SCALE_LOOKUPS = 100.0
 #: Photons per caustic estimate relative to ``lookup_size``: caustics are sharper.
 CAUSTIC_LOOKUP_FRACTION = 0.5
+#: ...times up to CAUSTIC_LOOKUP_GROWTH where caustics are much of the light that
+#: reaches surfaces first (:func:`caustic_lookup_size`): the share of caustic photons'
+#: power in caustic + direct photons' over CAUSTIC_SHARE_FOR_GROWTH. Read at the first
+#: diffuse vertex, a caustic estimate's noise is a blotch the size of its disc, ~1/√k
+#: of it for k photons; where the caustic is a glass sphere's focus (3-6 % of that
+#: light in the scenes measured) it is a small part of any pixel, but where a room is
+#: lit through a glass pane (98 %) the estimate is the image. There, 4 × 32 photons:
+#: relMSE 2.8e-4 -> 1.7e-4, low-frequency error (σ 4 px) 5.5e-5 -> 2.8e-5, luminance
+#: 0.993 -> 0.996 of path's (2 seeds, 320×240, 16 spp). The door-ajar proxy's rough
+#: floor (22 %) stays at 32: 128 photons cost it 23 % more time for 3 % less relMSE.
+CAUSTIC_SHARE_FOR_GROWTH = 0.25
+CAUSTIC_LOOKUP_GROWTH = 4
 #: The caustic pass emits at most this many paths per requested photon...
 CAUSTIC_PATHS_PER_PHOTON = 20
 #: ...and is dropped (records gather caustic light instead) below this yield (a map of
@@ -422,6 +434,21 @@ def trace_maps(scene, settings: Settings, info: SceneInfo, need_global: bool, ne
     return global_map, caustic_map
 
 
+def caustic_lookup_size(lookup_size: int, global_map: PhotonMap, caustic_map: PhotonMap) -> int:
+    """Photons per caustic estimate (:data:`CAUSTIC_LOOKUP_GROWTH`): caustics' share of
+    the first-bounce light is their photons' power over theirs plus the global map's
+    direct photons' (depth 1; both maps' powers are per emitted path of their own
+    pass)."""
+    size = lookup_size * CAUSTIC_LOOKUP_FRACTION
+    if caustic_map.count and global_map.count:
+        caustic = float(dr.sum(mi.luminance(caustic_map.power))[0])
+        direct = float(dr.sum(dr.select(global_map.depth == 1, mi.luminance(global_map.power), 0.0))[0])
+        share = caustic / (caustic + direct) if caustic + direct > 0 else 0.0
+        if math.isfinite(share):
+            size *= min(max(share / CAUSTIC_SHARE_FOR_GROWTH, 1.0), CAUSTIC_LOOKUP_GROWTH)
+    return max(1, int(size))
+
+
 def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caustic_map: PhotonMap,
                skipped: list) -> dict:
     """Stage 2: lookup radii, hash grids, and irradiance precomputed at the global
@@ -429,7 +456,7 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
     global_radius = settings.lookup_radius or adapted_lookup_radius(
         global_map.position, lookup_radius(info.surface_area, global_map.count, settings.lookup_size),
         settings.lookup_size)
-    caustic_size = max(1, int(settings.lookup_size * CAUSTIC_LOOKUP_FRACTION))
+    caustic_size = caustic_lookup_size(settings.lookup_size, global_map, caustic_map)
     caustic_radius = adapted_lookup_radius(
         caustic_map.position, lookup_radius(info.surface_area, caustic_map.count, caustic_size),
         caustic_size)
