@@ -57,7 +57,9 @@ FORMAT = "pmic-cache"
 #:     only where bounced light matters (pipeline.FIRST_GATHER_SHARE).
 #: 19: caustic maps hold the global pass's caustic photons of odd paths too
 #:     (photons.merge_caustic_photons), all weighed by both passes' paths.
-VERSION = 19
+#: 20: caustic estimates use more photons where caustics carry most of the
+#:     first-bounce light (pipeline.caustic_lookup_size): other radius and grid.
+VERSION = 20
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
