@@ -148,15 +148,18 @@ class PMICIntegrator(mi.SamplingIntegrator):
        * - ``caustic_photons``
          - integer
          - 100000
-         - Photons stored in the caustic map (0-5e7; skipped if the scene has no delta
-           or glossy surface; dropped if under a quarter is stored after 20 paths per
-           photon, and records then gather caustic light instead).
+         - Photons stored in the caustic map by its own pass (0-5e7; skipped if the
+           scene has no delta or glossy surface; dropped if under a tenth is stored
+           after 20 paths per photon, and records then gather caustic light instead).
+           The global pass's own caustic photons join the map.
        * - ``lookup_size``
          - integer
          - 64
          - Photons per density estimate (8-10000); sets the base lookup radius from
            where the photons landed (scale does not matter); estimates shrink it
-           where photons cluster.
+           where photons cluster. Caustic estimates use half as many, up to twice as
+           many where caustics carry most of the light surfaces receive first (a
+           room lit through glass).
        * - ``lookup_radius``
          - float
          - 0 (auto)
