@@ -504,29 +504,70 @@ def test_caustic_estimates_use_more_photons_where_caustics_light_the_room():
     """pipeline.caustic_lookup_size: in the room lit by a sky through a glass pane the
     caustic photons carry 98 % of the first-bounce light, and a caustic estimate, read
     at every first diffuse vertex, is the image: its noise shows as blotches. It uses
-    CAUSTIC_LOOKUP_GROWTH times the photons there (the floor's estimates, less a smooth
-    fit, vary by 2.5-4 % of their mean against 7-10.5 % with 32 photons, seeds 0-2),
-    and the usual count where caustics are a glass sphere's focus (Cornell box)."""
-    from pmic_integrator import irradiance, scenes
+    up to CAUSTIC_LOOKUP_GROWTH times the photons there, and the usual count where
+    caustics are a glass sphere's focus (Cornell box)."""
+    from pmic_integrator import scenes
 
-    scene = mi.load_dict(_pane_room())
     base = int(64 * pipeline.CAUSTIC_LOOKUP_FRACTION)
-    x, z = np.meshgrid(np.linspace(-0.5, 0.5, 21), np.linspace(-0.2, 0.8, 21))
-    floor = mi.Point3f(mi.Float(x.ravel().astype(np.float32)), mi.Float(np.full(441, 1e-4, np.float32)),
-                       mi.Float(z.ravel().astype(np.float32)))
-    basis = np.stack([np.ones(441), x.ravel(), z.ravel(), x.ravel() ** 2, z.ravel() ** 2, x.ravel() * z.ravel()], 1)
-    for seed in range(3):
-        integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC, "seed": seed})
-        integrator.build_cache(scene)
-        prepared = integrator.prepared
-        grown = pipeline.caustic_lookup_size(64, prepared.global_map, prepared.caustic_map)
-        assert 3.5 * base < grown <= base * pipeline.CAUSTIC_LOOKUP_GROWTH
-        e = np.array(mi.luminance(irradiance.estimate_irradiance(
-            prepared.caustic_map, prepared.caustic_grid, floor, mi.Vector3f(0, 1, 0), prepared.caustic_radius)))
-        residual = e - basis @ np.linalg.lstsq(basis, e, rcond=None)[0]
-        assert residual.std() / e.mean() < 0.05
+    integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC})
+    integrator.build_cache(mi.load_dict(_pane_room()))
+    prepared = integrator.prepared
+    assert pipeline.caustic_share(prepared.global_map, prepared.caustic_map) > 0.9
+    grown = pipeline.caustic_lookup_size(64, prepared.global_map, prepared.caustic_map)
+    assert 3.5 * base < grown <= base * pipeline.CAUSTIC_LOOKUP_GROWTH
     integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC})
     integrator.build_cache(scenes.load_scene("cornell_caustics", 16, 1))
     prepared = integrator.prepared
     assert prepared.caustic_map.count > 0
+    assert pipeline.caustic_share(prepared.global_map, prepared.caustic_map) < 0.1
     assert pipeline.caustic_lookup_size(64, prepared.global_map, prepared.caustic_map) == base
+
+
+def test_walls_lit_through_a_pane_beside_a_sun_patch_read_enough_caustic_photons():
+    """A sun and a sky through a glass pane: most caustic photons crowd into the sun's
+    patch on the floor. The caustic map's radius is set over the surfaces' area where
+    caustics light the room (pipeline.CAUSTIC_ROOM_PYRAMID_LEVELS), so the walls, lit
+    by the sky through the pane, read enough photons: against the light traced through
+    the pane at 600 wall points, relative RMS 37-42 % and no point at 0, where a radius
+    fitted to the photons gave 78-81 % and 7-12 % of the points at 0; the same mean."""
+    import math
+
+    import scene_builders as sb
+    from pmic_integrator import irradiance
+
+    d = _pane_room()
+    d["sun"] = {"type": "directional", "direction": [-0.3, -0.5, -1.0],
+                "irradiance": {"type": "rgb", "value": [3.0, 2.8, 2.5]}}
+    scene = mi.load_dict(d)
+    rng = np.random.default_rng(1)
+    m, rays = 600, 2048
+    back = rng.random(m) < 0.5
+    u, v = rng.uniform(-1.9, 1.9, m), rng.uniform(0.1, 2.4, m)
+    points = np.where(back[:, None], np.stack([u, v, np.full(m, -2 + 1e-4)], 1),
+                      np.stack([np.full(m, -2 + 1e-4), v, u], 1)).astype(np.float32)
+    normals = np.where(back[:, None], [0, 0, 1], [1, 0, 0]).astype(np.float32)
+    p, n = mi.Point3f(points.T), mi.Vector3f(normals.T)
+    # The sky's light through the pane, traced (the sun's reaches the floor only).
+    owner = dr.arange(mi.UInt32, m * rays) // rays
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(3, m * rays)
+    origin, normal = dr.gather(mi.Point3f, p, owner), dr.gather(mi.Vector3f, n, owner)
+    direction = mi.Frame3f(normal).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d()))
+    si = scene.ray_intersect(mi.Ray3f(origin + normal * 1e-3, direction))
+    flags = si.bsdf().flags()
+    pane = si.is_valid() & (mi.has_flag(flags, mi.BSDFFlags.Null) | mi.has_flag(flags, mi.BSDFFlags.DeltaTransmission))
+    beyond = scene.ray_intersect(si.spawn_ray(direction), pane)
+    bs, weight = si.bsdf().sample(mi.BSDFContext(), si, mi.Float(0.9999999), mi.Point2f(0.5, 0.5), pane)
+    through = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null) | mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaTransmission)
+    sky = mi.Color3f(0.5, 0.6, 0.8)
+    light = dr.select(pane & ~beyond.is_valid() & through, weight * bs.pdf * sky, 0.0)
+    truth = np.array(mi.luminance(mi.Color3f(light))).reshape(m, rays).mean(1) * math.pi
+    for seed in range(2):
+        integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC, "seed": seed})
+        integrator.build_cache(scene)
+        prepared = integrator.prepared
+        estimate = np.array(mi.luminance(irradiance.estimate_irradiance(
+            prepared.caustic_map, prepared.caustic_grid, p, n, prepared.caustic_radius)))
+        assert abs(estimate.sum() / truth.sum() - 1) < 0.08
+        assert np.sqrt(np.mean((estimate - truth) ** 2)) / truth.mean() < 0.6
+        assert np.mean(estimate == 0) < 0.02

@@ -59,7 +59,9 @@ FORMAT = "pmic-cache"
 #:     (photons.merge_caustic_photons), all weighed by both passes' paths.
 #: 20: caustic estimates use more photons where caustics carry most of the
 #:     first-bounce light (pipeline.caustic_lookup_size): other radius and grid.
-VERSION = 20
+#: 21: there, the caustic map's radius is set over the surfaces' area, with six
+#:     pyramid levels (pipeline.CAUSTIC_ROOM_PYRAMID_LEVELS).
+VERSION = 21
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

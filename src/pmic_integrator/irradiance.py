@@ -61,7 +61,7 @@ MIN_PRECOMPUTED = 1 << 14
 
 
 def adapted_lookup_radius(positions: mi.Point3f, radius: float, per_estimate: int,
-                          iterations: int = 8) -> float:
+                          iterations: int = 8, by_area: bool = False) -> float:
     """Shrink an area-based ``radius`` to where photons actually are.
 
     The area-based radius assumes photons spread over every surface. They do not: most
@@ -70,7 +70,10 @@ def adapted_lookup_radius(positions: mi.Point3f, radius: float, per_estimate: in
     2·10⁶-unit ground under a 1-unit box hung). Photons are counted per grid cell of
     the current radius; a photon's cell count c gives ~π c / CELL_SURFACE_FACES photons
     per disc, and the radius is scaled until the :data:`DENSITY_QUANTILE` photon has
-    ``per_estimate``. Never grows the radius.
+    ``per_estimate``. Never grows the radius. With ``by_area`` the quantile is taken over
+    the occupied cells instead of the photons: where most photons crowd into a small
+    bright patch (a sun's, through a window), the photons' quantile lies in the patch,
+    and the rest of the surfaces get a radius that holds a few photons.
     """
     count = dr.width(positions.x)
     if count == 0 or radius <= 0:
@@ -84,7 +87,13 @@ def adapted_lookup_radius(positions: mi.Point3f, radius: float, per_estimate: in
         bucket = hash_cell(cell_of(positions, origin, inv), opaque_u32(table - 1))
         counts = dr.zeros(mi.UInt32, table)
         scatter_count(counts, bucket)
-        occupancy = np.array(dr.gather(mi.UInt32, counts, dr.gather(mi.UInt32, bucket, sample)))
+        if by_area:
+            occupied = dr.compress(counts > 0)
+            cells = dr.gather(mi.UInt32, occupied, dr.arange(mi.UInt32, -(-dr.width(occupied) // max(
+                1, dr.width(occupied) // DENSITY_SAMPLE))) * max(1, dr.width(occupied) // DENSITY_SAMPLE))
+            occupancy = np.array(dr.gather(mi.UInt32, counts, cells))
+        else:
+            occupancy = np.array(dr.gather(mi.UInt32, counts, dr.gather(mi.UInt32, bucket, sample)))
         per_disc = math.pi * float(np.quantile(occupancy, DENSITY_QUANTILE)) / CELL_SURFACE_FACES
         if per_disc <= 1.25 * per_estimate:
             break
@@ -308,14 +317,14 @@ def nearest_photon(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
     return best, dr.isfinite(best_d2)
 
 
-def sort_into_grid(photons, radius: float, per_estimate: float):
+def sort_into_grid(photons, radius: float, per_estimate: float, levels: int | None = None):
     """``(photons reordered, PointGridPyramid)``: the map's grid pyramid for estimates
     of about ``per_estimate`` photons within ``radius``, and the photons in its order,
     so that a lookup reads neighbouring memory instead of jumping across the map.
     An empty map gives ``(photons, None)``."""
     if photons.count == 0:
         return photons, None
-    grid, order = PointGridPyramid.build(photons.position, radius, per_estimate)
+    grid, order = PointGridPyramid.build(photons.position, radius, per_estimate, levels)
     return photons.select(order), grid
 
 
