@@ -67,6 +67,10 @@ SKY_EMITTER_FRACTION = 0.5
 #: (their points, normals and weights: ~130 bytes a sample, 0.5 GB per pass); each
 #: further pass costs the loop's tracing again.
 DEFERRED_WAVEFRONT = 1 << 22
+#: Caustic-map reads a camera path can defer (its slots in the loop): one per traced
+#: vertex, and at most MAX_TRACED_BOUNCES vertices are traced (with more, reads stay in
+#: the loop: _defers_caustics).
+DEFERRED_READS = 3
 
 
 def _finite(value, active=True):
@@ -589,9 +593,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
         #: and the continuation took a delta lobe: emission met now is counted there.
         coat_counted = mi.Bool(False)
         # The paths' caustic-map reads, made after the loop: where, and their weights (β
-        # times the diffuse response). At most three: they are made at traced diffuse
-        # vertices only (defer_caustics), and a vertex is traced only while traced <
-        # MAX_TRACED_BOUNCES = 3; past that every lit diffuse vertex reads the cache.
+        # times the diffuse response). At most DEFERRED_READS = 3: they are made at
+        # traced diffuse vertices only (defer_caustics), and a vertex is traced only
+        # while traced < MAX_TRACED_BOUNCES; past that every lit diffuse vertex reads
+        # the cache.
         read1 = mi.Bool(False)
         read1_p = mi.Point3f(0.0)
         read1_n = mi.Vector3f(0.0)
@@ -856,7 +861,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
         loop (:meth:`_deferred_caustics`): the final gather, whose paths read the map at
         traced vertices only (at most three), unbounded (records hold caustics)."""
         return prepared.caustic_map.count > 0 and self.settings.final_gather_camera and \
-            prepared.index is not None and prepared.index.holds_caustics
+            prepared.index is not None and prepared.index.holds_caustics and \
+            MAX_TRACED_BOUNCES <= DEFERRED_READS
 
     def _deferred_caustics(self, reads, L, L_caustic, want_caustic):
         """The paths' caustic-map reads (``reads``: per read, the mask of the lanes that
