@@ -61,7 +61,9 @@ FORMAT = "pmic-cache"
 #:     first-bounce light (pipeline.caustic_lookup_size): other radius and grid.
 #: 21: there, the caustic map's radius is set over the surfaces' area, with six
 #:     pyramid levels (pipeline.CAUSTIC_ROOM_PYRAMID_LEVELS).
-VERSION = 21
+#: 22: delta lights' caustic photons count with a narrower kernel there
+#:     (PreparedScene.caustic_delta_scale).
+VERSION = 22
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

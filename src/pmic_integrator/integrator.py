@@ -432,7 +432,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             return dr.zeros(mi.Color3f, dr.width(p))
         return estimate_irradiance(prepared.caustic_map, prepared.caustic_grid, p, n,
                                    prepared.caustic_radius, max_depth=self._depth_limit(depth),
-                                   active=active)
+                                   active=active, delta_scale=prepared.caustic_delta_scale)
 
     def _cache_lookup(self, p, n, shading_n, active):
         """``(E, covered, R)``: the cache's interpolated irradiance, where records reach

@@ -154,7 +154,8 @@ def _compatible(photons: PhotonMap, index, offset, valid, query_n, radius):
 def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
                         query_n: mi.Vector3f, radius=None, max_depth=None, min_depth=None,
                         skip_specular_paths: bool = False, active=True,
-                        boundary: bool = True, without_delta_direct: bool = False) -> mi.Color3f:
+                        boundary: bool = True, without_delta_direct: bool = False,
+                        delta_scale: float = 1.0) -> mi.Color3f:
     """Irradiance at ``query_p`` from the photons within ``radius``.
 
     ``grid`` is a :class:`PointGridPyramid` (the radius then adapts to the local photon
@@ -166,7 +167,11 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
     their number of surface interactions: ``min_depth=2`` excludes direct light.
     ``skip_specular_paths`` excludes photons of L S* D paths (what a caustic map and
     direct lighting already count); ``without_delta_direct`` the photons that came
-    straight from a delta light (``photons.delta_light`` and depth 1). ``boundary`` corrects for discs that run past the
+    straight from a delta light (``photons.delta_light`` and depth 1). ``delta_scale``
+    (≤ 1): photons whose path started at a delta light count with a kernel that many
+    times narrower (as many times fewer photons: a sun's patch keeps its sharp edge
+    where a sky's light through the same window needs more photons per estimate).
+    ``boundary`` corrects for discs that run past the
     edge of their surface (see below): without it, a Cornell box came out 1.2 % dark.
     """
     query_n = mi.Vector3f(query_n)
@@ -178,6 +183,8 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
     else:
         radius = dr.opaque(mi.Float, radius) if isinstance(radius, (int, float)) else mi.Float(radius)
     inv_r2 = dr.rcp(dr.maximum(radius * radius, 1e-30))
+    narrow_delta = delta_scale < 1.0 and photons.delta_light is not None
+    inv_s2 = opaque_float(1.0 / max(delta_scale, 1e-3) ** 2) if narrow_delta else None
 
     def visit(state, index, dist2, valid, offset):
         total, moment, weight, weight2 = state
@@ -196,6 +203,11 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
         # A masked gather reads zero power for rejected photons: no select needed.
         power = dr.gather(mi.Color3f, photons.power, index, ok)
         k = dr.square(1.0 - dist2 * inv_r2)
+        if narrow_delta:
+            # Kernel of radius s·r for delta lights' photons, normalised to it (1/s²).
+            from_delta = dr.gather(mi.Bool, photons.delta_light, index, ok)
+            k_delta = dr.square(dr.maximum(1.0 - dist2 * inv_r2 * inv_s2, 0.0)) * inv_s2
+            k = dr.select(from_delta, k_delta, k)
         total = dr.fma(power, k, total)
         if boundary:
             # Kernel-and-power-weighted moments of the photons' offsets in the plane.
@@ -259,7 +271,7 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     ``radius`` is the base radius of the estimates, which shrinks where photons are
     dense (:class:`PointGridPyramid`) so that a disc of B holds ~``per_estimate`` / 2
     photons. ``max_depth`` limits the photons counted (camera paths of bounded length).
-    ``caustics`` (``(map, grid, radius)`` of the caustic map, or None): the caustic
+    ``caustics`` (``(map, grid, radius, delta_scale)`` of the caustic map, or None): the caustic
     map's irradiance is estimated at A's photons too (``irradiance_caustic``), for gather
     rays that bounce on at a near hit (:func:`~pmic_integrator.gather.trace_gather_rays`).
     """
@@ -285,9 +297,9 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
                                       max_depth=max_depth, without_delta_direct=True) * scale
         half_a.irradiance_nodelta = dr.select(dr.all(dr.isfinite(nodelta)), nodelta, 0.0)
     if caustics is not None:
-        caustic_map, caustic_grid, caustic_radius = caustics
+        caustic_map, caustic_grid, caustic_radius, delta_scale = caustics
         caustic = estimate_irradiance(caustic_map, caustic_grid, half_a.position, half_a.normal,
-                                      caustic_radius)
+                                      caustic_radius, delta_scale=delta_scale)
         half_a.irradiance_caustic = dr.select(dr.all(dr.isfinite(caustic)), caustic, 0.0)
     half_a.paths_emitted = photons.paths_emitted
     dr.eval(half_a.irradiance, half_a.irradiance_nodelta, half_a.irradiance_caustic)

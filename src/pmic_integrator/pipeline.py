@@ -216,6 +216,10 @@ class PreparedScene:
     gather_source: GatherSource | None = None  #: what gather rays read (stage 2)
     #: Sky radiance × cosine tables for direct light (None: no environment emitter).
     sky: SkySampler | None = None
+    #: Delta lights' caustic photons count with a kernel this many times narrower than
+    #: the caustic radius (``estimate_irradiance``'s ``delta_scale``; see
+    #: CAUSTIC_LOOKUP_GROWTH).
+    caustic_delta_scale: float = 1.0
 
     @property
     def length_scale(self) -> float:
@@ -473,6 +477,13 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
     caustic_size = caustic_lookup_size(settings.lookup_size, global_map, caustic_map)
     # Where caustics light the room (CAUSTIC_ROOM_PYRAMID_LEVELS).
     lit_by_caustics = caustic_share(global_map, caustic_map) >= CAUSTIC_SHARE_FOR_GROWTH
+    # A delta light's caustic (a sun's patch through a window) keeps the base count of
+    # photons per estimate, and so its sharp edge: its photons' kernel is narrower by
+    # the square root of the growth.
+    from_delta = caustic_map.count and caustic_map.delta_light is not None and \
+        bool(dr.any(caustic_map.delta_light)[0])
+    delta_scale = min(1.0, math.sqrt(settings.lookup_size * CAUSTIC_LOOKUP_FRACTION / caustic_size)) \
+        if from_delta else 1.0
     caustic_radius = adapted_lookup_radius(
         caustic_map.position, lookup_radius(info.surface_area, caustic_map.count, caustic_size),
         caustic_size, by_area=lit_by_caustics)
@@ -490,7 +501,7 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
         # Gather rays read this copy (a fraction of the photons, see precompute_irradiance).
         # Gather rays that bounce on at a near hit read its caustics from here
         # (unbounded max_depth only: see GatherSource.near_hit_distance).
-        caustics = (caustic_map, caustic_grid, caustic_radius) \
+        caustics = (caustic_map, caustic_grid, caustic_radius, delta_scale) \
             if depth_limit is None and caustic_map.count else None
         gather_source = GatherSource.build(
             precompute_irradiance(global_map, global_radius, settings.lookup_size, depth_limit,
@@ -506,7 +517,8 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
             global_map, global_grid, gather_source = PhotonMap.empty(), None, None
     return dict(global_map=global_map, global_grid=global_grid, caustic_map=caustic_map,
                 caustic_grid=caustic_grid, global_radius=global_radius,
-                caustic_radius=caustic_radius, gather_source=gather_source)
+                caustic_radius=caustic_radius, caustic_delta_scale=delta_scale,
+                gather_source=gather_source)
 
 
 def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Progress):
@@ -565,7 +577,7 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
             # seen. (With a bounded max_depth the reads stay per vertex, by depth.)
             index.direct = index.direct + estimate_irradiance(
                 prepared.caustic_map, prepared.caustic_grid, index.records.position,
-                index.records.normal, prepared.caustic_radius)
+                index.records.normal, prepared.caustic_radius, delta_scale=prepared.caustic_delta_scale)
             index.holds_caustics = True
         dr.eval(index.direct)
         if two_rounds and index.guiding_pays():
