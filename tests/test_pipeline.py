@@ -513,14 +513,14 @@ def test_caustic_estimates_use_more_photons_where_caustics_light_the_room():
     integrator.build_cache(mi.load_dict(_pane_room()))
     prepared = integrator.prepared
     assert pipeline.caustic_share(prepared.global_map, prepared.caustic_map) > 0.9
-    grown = pipeline.caustic_lookup_size(64, prepared.global_map, prepared.caustic_map)
+    grown = pipeline.caustic_lookup_size(64, pipeline.caustic_share(prepared.global_map, prepared.caustic_map))
     assert 3.5 * base < grown <= base * pipeline.CAUSTIC_LOOKUP_GROWTH
     integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC})
     integrator.build_cache(scenes.load_scene("cornell_caustics", 16, 1))
     prepared = integrator.prepared
     assert prepared.caustic_map.count > 0
     assert pipeline.caustic_share(prepared.global_map, prepared.caustic_map) < 0.1
-    assert pipeline.caustic_lookup_size(64, prepared.global_map, prepared.caustic_map) == base
+    assert pipeline.caustic_lookup_size(64, pipeline.caustic_share(prepared.global_map, prepared.caustic_map)) == base
 
 
 def test_walls_lit_through_a_pane_beside_a_sun_patch_read_enough_caustic_photons():

@@ -16,7 +16,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ._jit import opaque_float, opaque_u32, scatter_count
+from ._jit import every_nth, opaque_float, opaque_u32, scatter_count
 from .hashgrid import PointGrid, PointGridPyramid, _neighbour_offset, _next_pow2, cell_of, hash_cell
 from .photons import PhotonMap
 
@@ -80,8 +80,7 @@ def adapted_lookup_radius(positions: mi.Point3f, radius: float, per_estimate: in
         return radius
     origin = mi.Point3f(dr.min(positions.x), dr.min(positions.y), dr.min(positions.z))
     table = _next_pow2(2 * count)
-    stride = max(1, count // DENSITY_SAMPLE)
-    sample = dr.arange(mi.UInt32, -(-count // stride)) * stride
+    sample = every_nth(count, max(1, count // DENSITY_SAMPLE))
     for _ in range(iterations):
         inv = dr.opaque(mi.Float, 1.0 / radius)
         bucket = hash_cell(cell_of(positions, origin, inv), opaque_u32(table - 1))
@@ -89,8 +88,8 @@ def adapted_lookup_radius(positions: mi.Point3f, radius: float, per_estimate: in
         scatter_count(counts, bucket)
         if by_area:
             occupied = dr.compress(counts > 0)
-            cells = dr.gather(mi.UInt32, occupied, dr.arange(mi.UInt32, -(-dr.width(occupied) // max(
-                1, dr.width(occupied) // DENSITY_SAMPLE))) * max(1, dr.width(occupied) // DENSITY_SAMPLE))
+            cells = dr.gather(mi.UInt32, occupied,
+                              every_nth(dr.width(occupied), max(1, dr.width(occupied) // DENSITY_SAMPLE)))
             occupancy = np.array(dr.gather(mi.UInt32, counts, cells))
         else:
             occupancy = np.array(dr.gather(mi.UInt32, counts, dr.gather(mi.UInt32, bucket, sample)))

@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import drjit as dr
 import mitsuba as mi
@@ -409,11 +409,11 @@ def merge_caustic_photons(caustic: PhotonMap, global_map: PhotonMap) -> PhotonMa
         return caustic
     extra = dr.compress(global_map.specular_path & global_map.shared_path & (global_map.depth >= 2)
                         & ((global_map.path & 1) == 1))
-    merged = caustic.select(dr.arange(mi.UInt32, caustic.count))
     total = n_caustic + n_odd
     # Opaque: the path counts move with the photon seed (constants: a kernel per seed).
-    merged.power = dr.select(merged.shared_path, merged.power * opaque_float(n_caustic / total),
-                             merged.power)
+    merged = replace(caustic, power=dr.select(caustic.shared_path,
+                                              caustic.power * opaque_float(n_caustic / total),
+                                              caustic.power))
     if dr.width(extra):
         more = global_map.select(extra)
         more.power = more.power * opaque_float(global_map.paths_emitted / total)

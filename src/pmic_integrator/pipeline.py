@@ -460,10 +460,10 @@ def caustic_share(global_map: PhotonMap, caustic_map: PhotonMap) -> float:
     return share if math.isfinite(share) else 0.0
 
 
-def caustic_lookup_size(lookup_size: int, global_map: PhotonMap, caustic_map: PhotonMap) -> int:
-    """Photons per caustic estimate (:data:`CAUSTIC_LOOKUP_GROWTH`)."""
-    growth = min(max(caustic_share(global_map, caustic_map) / CAUSTIC_SHARE_FOR_GROWTH, 1.0),
-                 CAUSTIC_LOOKUP_GROWTH)
+def caustic_lookup_size(lookup_size: int, share: float) -> int:
+    """Photons per caustic estimate where caustics have ``share`` of the first-bounce
+    light (:func:`caustic_share`; :data:`CAUSTIC_LOOKUP_GROWTH`)."""
+    growth = min(max(share / CAUSTIC_SHARE_FOR_GROWTH, 1.0), CAUSTIC_LOOKUP_GROWTH)
     return max(1, int(lookup_size * CAUSTIC_LOOKUP_FRACTION * growth))
 
 
@@ -474,9 +474,10 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
     global_radius = settings.lookup_radius or adapted_lookup_radius(
         global_map.position, lookup_radius(info.surface_area, global_map.count, settings.lookup_size),
         settings.lookup_size)
-    caustic_size = caustic_lookup_size(settings.lookup_size, global_map, caustic_map)
+    share = caustic_share(global_map, caustic_map)
+    caustic_size = caustic_lookup_size(settings.lookup_size, share)
     # Where caustics light the room (CAUSTIC_ROOM_PYRAMID_LEVELS).
-    lit_by_caustics = caustic_share(global_map, caustic_map) >= CAUSTIC_SHARE_FOR_GROWTH
+    lit_by_caustics = share >= CAUSTIC_SHARE_FOR_GROWTH
     # A delta light's caustic (a sun's patch through a window) keeps the base count of
     # photons per estimate, and so its sharp edge: its photons' kernel is narrower by
     # the square root of the growth.
