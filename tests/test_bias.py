@@ -88,6 +88,22 @@ def test_principled_is_not_counted_twice():
     assert ratio_to_path(scene) == pytest.approx(1.0, abs=0.025)
 
 
+@pytest.mark.parametrize("estimator", ["first_hit", "final_gather"])
+def test_light_through_a_thin_principled_leaf_reaches_the_cache(estimator):
+    """A ``principledthin`` leaf (diffuse transmission) hangs under the light. Gather
+    rays that met it took its reflection only (its response to the irradiance on
+    their side; the principled BSDFs ignore lobe masks, so the lobes cannot be taken
+    apart) and lost what it transmits from the light above: the floor and the boxes
+    under it came out 13-28 % dark (before: 0.84 of path with first_hit, 0.93 with
+    final_gather)."""
+    leaf = {"type": "rectangle",
+            "to_world": mi.ScalarTransform4f().translate([0, 0.5, 0]).rotate([1, 0, 0], 90).scale(0.6),
+            "bsdf": {"type": "principledthin", "base_color": {"type": "rgb", "value": [0.6, 0.8, 0.4]},
+                     "diff_trans": 1.0, "roughness": 0.6}}
+    assert ratio_to_path(sb.cornell(size=40, leaf=leaf), spp=64, estimator=estimator) == \
+        pytest.approx(1.0, abs=0.015)
+
+
 @pytest.mark.parametrize("material", ["roughplastic", "plastic"])
 def test_coated_walls_reflect_the_cosine_weighted_average(material):
     """The diffuse lobe of a coated material falls towards grazing angles (Fresnel);

@@ -63,7 +63,9 @@ FORMAT = "pmic-cache"
 #:     pyramid levels (pipeline.CAUSTIC_ROOM_PYRAMID_LEVELS).
 #: 22: delta lights' caustic photons count with a narrower kernel there
 #:     (PreparedScene.caustic_delta_scale).
-VERSION = 22
+#: 23: gather rays go on through principled BSDFs that transmit
+#:     (SceneInfo.has_diffuse_transmission, GatherSource.crossing).
+VERSION = 23
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

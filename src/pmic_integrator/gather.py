@@ -110,6 +110,9 @@ class GatherSource:
     #: Diffuse hits closer than this are bounced on (:data:`NEAR_HIT_LOOKUPS`); 0: never
     #: (a bounded ``max_depth``, whose photons' depth limit leaves no segment for it).
     near_hit_distance: float = 0.0
+    #: Some BSDF has a diffuse lobe and transmits (SceneInfo.has_diffuse_transmission):
+    #: gather rays go on through those whose lobes cannot be taken apart (principled).
+    crossing: bool = False
 
     #: The full search reaches this many lookup radii: the precomputed photons are a
     #: fraction of the map (:func:`~pmic_integrator.irradiance.precompute_stride`), and
@@ -281,12 +284,14 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
     # Emission met next is counted after a delta/glossy bounce without a caustic map,
     # and right after a near bounce's delta sample (its emitter sample holds the rest).
     count_emission = dr.zeros(mi.Bool, dr.width(ray.o))
+    crossed = dr.zeros(mi.Bool, dr.width(ray.o))  # went through an inseparable BSDF
     while dr.hint(active, label="gather_ray",
                   max_iterations=GATHER_SPECULAR_BOUNCES + NEAR_HIT_BOUNCES + 1):
         si = scene.ray_intersect(ray, active)
-        if dr.hint(caustics | near_on, mode="scalar"):
-            # Light reaching the record through delta/glossy bounces (no caustic map),
-            # or reaching a near bounce's point past its emitter sample.
+        if dr.hint(caustics | near_on | source.crossing, mode="scalar"):
+            # Light reaching the record through delta/glossy bounces (no caustic map)
+            # or through an inseparable BSDF, or reaching a near bounce's point past
+            # its emitter sample.
             seen = active & count_emission
             emitted = throughput * si.emitter(scene, seen).eval(si, seen)
             radiance += dr.select(seen & dr.all(dr.isfinite(emitted)), emitted, 0.0)
@@ -329,20 +334,34 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
         radiance += dr.select(diffuse & dr.all(dr.isfinite(reflected)), reflected, 0.0)
         rest = active & ~near & (mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy))
         rest &= bounce < GATHER_SPECULAR_BOUNCES
-        # A BSDF that ignores lobe masks gave its whole response above: stop there.
-        rest &= lobes_separable(bsdf, si, rest & diffuse)
+        # A BSDF that ignores lobe masks (principled) gave its reflection above as a
+        # diffuse response; what it transmits (glass, a thin leaf) comes from the other
+        # side, which that response cannot see: a sample of the whole BSDF goes on
+        # where it crosses the surface, and ends where it reflects.
+        separable = lobes_separable(bsdf, si, rest & diffuse)
+        through = rest & diffuse & ~separable
+        rest &= separable
         u1 = rng.next_float32()
         u2 = mi.Point2f(rng.next_float32(), rng.next_float32())
         bs, weight = bsdf.sample(ctx_specular, si, u1, u2, rest)
+        if dr.hint(source.crossing, mode="scalar"):
+            bs_through, weight_through = bsdf.sample(ctx_all, si, u1, u2, through)
+            through &= mi.Frame3f.cos_theta(si.wi) * mi.Frame3f.cos_theta(bs_through.wo) < 0
+            bs[through] = bs_through
+            weight[through] = weight_through
+            # Photons through such a surface are global-map photons (not caustic ones),
+            # so no caustic map holds the emitters seen through it: count them.
+            crossed |= through
+            rest |= through
         if dr.hint(near_on, mode="scalar"):
             bs_near, weight_near = bsdf.sample(ctx_all, si, u1, u2, near)
             bs[near] = bs_near
             weight[near] = weight_near
             count_emission = dr.select(near, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
-                                       mi.Bool(caustics))
+                                       mi.Bool(caustics) | crossed)
             near_bounces[near] = near_bounces + 1
         else:
-            count_emission = mi.Bool(caustics)
+            count_emission = mi.Bool(caustics) | crossed
         throughput *= weight
         active = (rest | near) & (bs.pdf > 0) & (dr.max(throughput) > 0) & dr.all(dr.isfinite(throughput))
         ray = si.spawn_ray(si.to_world(bs.wo))

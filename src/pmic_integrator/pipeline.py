@@ -175,18 +175,24 @@ class SceneInfo:
     #: Some BSDF has a diffuse lobe beside a glossy one (a rough plastic): past a vertex
     #: that read the caustic map, camera paths sample its lobes apart.
     has_glossy_coat: bool = False
+    #: Some BSDF has a diffuse lobe and transmits (principled glass, a principledthin
+    #: leaf): gather rays that meet it go on through it (GatherSource.crossing).
+    has_diffuse_transmission: bool = False
 
     @staticmethod
     def of(scene: mi.Scene) -> "SceneInfo":
         bbox = scene_bbox(scene)
         diagonal = float(dr.norm(bbox.extents())) if bbox.valid() else 0.0
         has_diffuse, has_specular, has_coat, has_glossy_coat = False, False, False, False
+        has_diffuse_transmission = False
         for flags in [_bsdf_flags(shape) for shape in scene.shapes()] + _instanced_bsdf_flags(scene):
             has_diffuse |= bool(flags & int(mi.BSDFFlags.Diffuse))
             has_specular |= bool(flags & (int(mi.BSDFFlags.Delta) | int(mi.BSDFFlags.Glossy)))
             has_coat |= bool(flags & int(mi.BSDFFlags.Diffuse)) and \
                 bool(flags & int(mi.BSDFFlags.Delta)) and not flags & int(mi.BSDFFlags.Glossy)
             has_glossy_coat |= bool(glossy_beside_diffuse(flags))
+            has_diffuse_transmission |= bool(flags & int(mi.BSDFFlags.Diffuse)) and \
+                bool(flags & int(mi.BSDFFlags.Transmission))
         area = sum(_shape_area(shape) for shape in scene.shapes())
         if not math.isfinite(diagonal) or diagonal <= 0:
             diagonal = 1.0
@@ -195,7 +201,7 @@ class SceneInfo:
         infinite = any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) for e in scene.emitters())
         delta = any(is_delta(e) for e in scene.emitters())
         return SceneInfo(diagonal, area, len(scene.emitters()), has_diffuse, has_specular, infinite,
-                         delta, has_coat, has_glossy_coat)
+                         delta, has_coat, has_glossy_coat, has_diffuse_transmission)
 
 
 @dataclass
@@ -509,6 +515,7 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
                                   caustics),
             global_radius)
         gather_source.caustics_by_gathering = caustic_map.count == 0
+        gather_source.crossing = info.has_diffuse_transmission
         if depth_limit is None:
             gather_source.near_hit_distance = NEAR_HIT_LOOKUPS * global_radius
         if gather_source.photons.count == 0:
