@@ -43,9 +43,15 @@ def pass_counts(film: mi.Film, spp: int, max_wavefront: int = MAX_WAVEFRONT) -> 
 
 def seeded_sampler(sensor: mi.Sensor, seed: int, spp: int) -> mi.Sampler:
     """A copy of the sensor's sampler, set to ``spp`` per pixel for one wavefront and
-    seeded with ``seed``."""
+    seeded with ``seed``.
+
+    Samplers round the count to one they can stratify (``stratified`` and
+    ``multijitter`` a square, ``ldsampler`` a power of two, ``orthogonal`` a prime's
+    square), as in Mitsuba's own render: the wavefront takes their count (asked for
+    10, the film gets 9 or 16 samples per pixel, each weighed as one)."""
     sampler = sensor.sampler().clone()
     sampler.set_sample_count(spp)
+    spp = sampler.sample_count()
     sampler.set_samples_per_wavefront(spp)
     extent = film_extent(sensor.film())
     sampler.seed(seed, int(extent[0]) * int(extent[1]) * spp)
