@@ -84,6 +84,21 @@ def lobes_separable(bsdf, si: mi.SurfaceInteraction3f, active) -> mi.Bool:
     return ~(active & (f_all > 0) & (f_d + f_r > MASK_IGNORED_RATIO * f_all))
 
 
+def near_diffuse(bsdf, si: mi.SurfaceInteraction3f, active, peak_ratio: float) -> mi.Bool:
+    """True where the whole BSDF, for the incident direction ``si.wi``, is within
+    ``peak_ratio`` of diffuse: its value at the mirror direction at most that many
+    times its cosine-weighted mean (:func:`diffuse_response` over every lobe). A
+    Lambertian surface has 1; Mitsuba's ``principled`` at roughness 0.5 has 1.3 at
+    normal incidence and 6 at 66° (Fresnel), at roughness 0.3 3.7 and 51."""
+    active = mi.Bool(active)
+    ctx = mi.BSDFContext()
+    mean = dr.max(diffuse_response(bsdf, si, active, ctx))
+    wo = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
+    cos_o = dr.abs(mi.Frame3f.cos_theta(wo))
+    peak = dr.max(mi.Color3f(bsdf.eval(ctx, si, wo, active))) / dr.maximum(cos_o, 1e-6)
+    return active & (mean > 0) & (peak <= peak_ratio * mean)
+
+
 #: Probability of the glossy lobes where a BSDF's diffuse and glossy lobes are
 #: sampled apart (:func:`sample_lobes_apart`).
 GLOSSY_LOBE_PROBABILITY = 0.5
