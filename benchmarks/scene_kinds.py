@@ -1,7 +1,8 @@
 #!/usr/bin/env python
 """pmic against ``path`` at equal time on scenes of the kinds the public checks use,
 built in code: a room lit through a door ajar from the next room (diffuse floor, and a
-rough-aluminium floor whose glossy lobe fills the caustic map), a courtyard under a
+rough-aluminium floor whose glossy lobe fills the caustic map, and every surface of
+Mitsuba's principled BSDF as Blender exports them), a courtyard under a
 constant sky, with and without a sun, and a room lit by a sky through a thin glass pane
 in its window (all of its light caustic).
 
@@ -45,6 +46,15 @@ def scene_dict(name: str, size):
         d = sb.two_rooms(door_width=0.25, size=size)
     elif name == "door_rough_floor":
         d = sb.two_rooms(door_width=0.25, size=size, floor_bsdf=ROUGH_ALUMINIUM)
+    elif name == "door_principled":
+        # Every surface Mitsuba's principled BSDF at Blender's default roughness (what
+        # Blender exports): its lobes cannot be taken apart.
+        def principled(rgb):
+            return {"type": "principled", "base_color": {"type": "rgb", "value": list(rgb)},
+                    "roughness": 0.5}
+        d = sb.two_rooms(door_width=0.25, size=size, wall_bsdf=principled((0.7, 0.7, 0.7)))
+        for key, rgb in (("back", (0.6, 0.6, 0.4)), ("left", (0.7, 0.2, 0.2)), ("right", (0.2, 0.6, 0.2))):
+            d[key]["bsdf"] = principled(rgb)
     elif name == "courtyard_sun":
         d = sb.courtyard(size=size)
     elif name == "courtyard_overcast":
@@ -59,7 +69,8 @@ def scene_dict(name: str, size):
     return d
 
 
-SCENES = ("door_diffuse", "door_rough_floor", "courtyard_sun", "courtyard_overcast", "window_pane")
+SCENES = ("door_diffuse", "door_rough_floor", "door_principled", "courtyard_sun", "courtyard_overcast",
+          "window_pane")
 REPEATS = 2
 
 
