@@ -45,7 +45,11 @@ MAX_TRACED_BOUNCES = 3
 #: be, a Cornell box of principled walls came out 3-8 % off in places at roughness
 #: 0.5, 10-20 % with metallic 0.5 and roughness 0.3 (glossy reflections of the light
 #: averaged away); at 2, within 1.4 % and 0.7 % (the metallic walls never read: they
-#: are traced as before); at 4, 3 % and 3 %.
+#: are traced as before); at 4, 3 % and 3 %. In a dim room lit through a door
+#: (benchmarks/scene_kinds.py's door_principled) it still leaves the image ~2 % dark
+#: for most photon seeds (a quadrant 5 %), mostly from the gathers' even-light
+#: approximation at principled hits (README, limits); at 1.2 it is unbiased but
+#: reads too rarely to pay (0.39x path's speed there, against 1.87x).
 WHOLE_PEAK_RATIO = 2.0
 #: Guiding (``guiding``): at a traced diffuse vertex that a record reaches, this
 #: fraction, times the share of bounced light in the record's irradiance, of the
