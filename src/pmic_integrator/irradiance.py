@@ -9,6 +9,7 @@ where classic photon-map renderers lose most of their accuracy.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -343,43 +344,16 @@ def sort_into_grid(photons, radius: float, per_estimate: float, levels: int | No
 #: Photon normals are put in 64 bins of the octahedral map (8 × 8 squares over the
 #: unfolded octahedron). An estimate counts photons within acos(NORMAL_COSINE) = 36.9°
 #: of the query normal: a bin all of whose normals are further off holds none it
-#: counts (``_BIN_REACH``: each bin's angular radius about its centre, measured once).
+#: counts (:func:`_bin_limits`: each bin's angular radius about its centre, measured
+#: once with :func:`_normal_bin` itself).
 _BIN_SIDE = 8
-
-
-def _octahedral_bin(d: np.ndarray) -> np.ndarray:
-    """The bin of unit vectors ``d`` (N × 3), as :func:`normal_bins` computes it."""
-    d = d / np.abs(d).sum(1, keepdims=True)
-    u, v = d[:, 0].copy(), d[:, 1].copy()
-    lower = d[:, 2] < 0
-    u[lower], v[lower] = ((1 - np.abs(d[lower, 1])) * np.sign(d[lower, 0] + 1e-30),
-                          (1 - np.abs(d[lower, 0])) * np.sign(d[lower, 1] + 1e-30))
-    i = np.clip(((u + 1) * 0.5 * _BIN_SIDE).astype(int), 0, _BIN_SIDE - 1)
-    j = np.clip(((v + 1) * 0.5 * _BIN_SIDE).astype(int), 0, _BIN_SIDE - 1)
-    return j * _BIN_SIDE + i
-
-
-def _bin_geometry(samples: int = 1 << 18):
-    """Each bin's mean direction and the largest angle from it of a normal in it."""
-    d = np.random.default_rng(7).normal(size=(samples, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    b = _octahedral_bin(d)
-    centre = np.zeros((_BIN_SIDE ** 2, 3))
-    np.add.at(centre, b, d)
-    centre /= np.linalg.norm(centre, axis=1, keepdims=True)
-    reach = np.zeros(_BIN_SIDE ** 2)
-    np.maximum.at(reach, b, np.arccos(np.clip((d * centre[b]).sum(1), -1, 1)))
-    return centre.astype(np.float32), reach
-
-
-_BIN_CENTRE, _BIN_REACH = _bin_geometry()
 #: A bin is wanted where its centre is within 36.9° + its reach + this margin (the
 #: reach is sampled, and float rounding) of the query normal.
 _BIN_MARGIN = math.radians(3.0)
 
 
-def normal_bins(normal: mi.Vector3f) -> mi.UInt64:
-    """The bit of each normal's octahedral bin (``_BIN_SIDE`` × ``_BIN_SIDE``)."""
+def _normal_bin(normal: mi.Vector3f) -> mi.UInt32:
+    """Each normal's octahedral bin, in [0, ``_BIN_SIDE``²)."""
     d = normal / dr.maximum(dr.abs(normal.x) + dr.abs(normal.y) + dr.abs(normal.z), 1e-30)
     fold_u = (1.0 - dr.abs(d.y)) * dr.select(d.x >= 0, 1.0, -1.0)
     fold_v = (1.0 - dr.abs(d.x)) * dr.select(d.y >= 0, 1.0, -1.0)
@@ -387,7 +361,30 @@ def normal_bins(normal: mi.Vector3f) -> mi.UInt64:
     v = dr.select(d.z < 0, fold_v, d.y)
     i = mi.UInt32(dr.clip(dr.floor((u + 1.0) * (0.5 * _BIN_SIDE)), 0, _BIN_SIDE - 1))
     j = mi.UInt32(dr.clip(dr.floor((v + 1.0) * (0.5 * _BIN_SIDE)), 0, _BIN_SIDE - 1))
-    return mi.UInt64(1) << mi.UInt64(j * _BIN_SIDE + i)
+    return j * _BIN_SIDE + i
+
+
+def normal_bins(normal: mi.Vector3f) -> mi.UInt64:
+    """The bit of each normal's octahedral bin (``_BIN_SIDE`` × ``_BIN_SIDE``)."""
+    return mi.UInt64(1) << mi.UInt64(_normal_bin(normal))
+
+
+@functools.lru_cache(maxsize=None)
+def _bin_limits(samples: int = 1 << 18):
+    """Per bin, its mean direction and the cosine above which a query normal may count
+    one of its photons (36.9° + the largest angle of a normal in the bin from its
+    centre + ``_BIN_MARGIN``), measured over ``samples`` random directions binned by
+    :func:`_normal_bin`. Once per process, at the first use (not at import: 0.06 s)."""
+    d = np.random.default_rng(7).normal(size=(samples, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    b = np.array(_normal_bin(mi.Vector3f(*(d[:, k].astype(np.float32) for k in range(3)))))
+    centre = np.zeros((_BIN_SIDE ** 2, 3))
+    np.add.at(centre, b, d)
+    centre /= np.linalg.norm(centre, axis=1, keepdims=True)
+    reach = np.zeros(_BIN_SIDE ** 2)
+    np.maximum.at(reach, b, np.arccos(np.clip((d * centre[b]).sum(1), -1, 1)))
+    limits = [math.cos(min(math.pi, math.acos(NORMAL_COSINE) + r + _BIN_MARGIN)) for r in reach]
+    return [tuple(float(c) for c in row) for row in centre.astype(np.float32)], limits
 
 
 #: The bins' own hash table holds this many buckets per photon: the 27 lookups of a
@@ -419,12 +416,12 @@ class NormalBins:
 def may_count_photons(normal_bins_: NormalBins, p: mi.Point3f, n: mi.Vector3f, active=True) -> mi.Bool:
     """False where an estimate at (p, n) is certainly 0: no photon in the 3×3×3
     level-0 cells around p (which hold every photon a disc of any level reaches) has a
-    normal the estimate could count (``_BIN_REACH``). True may still estimate 0."""
+    normal the estimate could count (:func:`_bin_limits`). True may still estimate 0."""
     lanes = dr.width(p)
     wanted = mi.UInt64(0)
+    centres, limits = _bin_limits()
     for b in range(_BIN_SIDE ** 2):
-        limit = math.cos(min(math.pi, math.acos(NORMAL_COSINE) + _BIN_REACH[b] + _BIN_MARGIN))
-        near = dr.dot(n, mi.Vector3f(*(float(c) for c in _BIN_CENTRE[b]))) > limit
+        near = dr.dot(n, mi.Vector3f(*centres[b])) > limits[b]
         wanted |= dr.select(near, mi.UInt64(1 << b), mi.UInt64(0))
     g = normal_bins_
     center = cell_of(p, g.origin, dr.opaque(mi.Float, 1.0 / g.cell_size))
