@@ -1,8 +1,8 @@
 #!/usr/bin/env python
 """pmic against ``path`` at equal time on scenes of the kinds the public checks use,
 built in code: a room lit through a door ajar from the next room (diffuse floor, and a
-rough-aluminium floor whose glossy lobe fills the caustic map, and every surface of
-Mitsuba's principled BSDF as Blender exports them), a courtyard under a
+rough-aluminium floor whose glossy lobe fills the caustic map, every surface of
+Mitsuba's principled BSDF as Blender exports them, and every surface rough plastic), a courtyard under a
 constant sky, with and without a sun, and a room lit by a sky through a thin glass pane
 in its window (all of its light caustic).
 
@@ -55,6 +55,16 @@ def scene_dict(name: str, size):
         d = sb.two_rooms(door_width=0.25, size=size, wall_bsdf=principled((0.7, 0.7, 0.7)))
         for key, rgb in (("back", (0.6, 0.6, 0.4)), ("left", (0.7, 0.2, 0.2)), ("right", (0.2, 0.6, 0.2))):
             d[key]["bsdf"] = principled(rgb)
+    elif name == "door_rough_plastic":
+        # Every surface rough plastic, as exported scenes often have it (walls alpha 0.3,
+        # a glossier floor, 0.15): each coat a weak glossy lobe beside the diffuse one.
+        def rough_plastic(rgb, alpha=0.3):
+            return {"type": "roughplastic", "diffuse_reflectance": {"type": "rgb", "value": list(rgb)},
+                    "alpha": alpha}
+        d = sb.two_rooms(door_width=0.25, size=size, wall_bsdf=rough_plastic((0.7, 0.7, 0.7)),
+                         floor_bsdf=rough_plastic((0.6, 0.5, 0.4), alpha=0.15))
+        for key, rgb in (("back", (0.6, 0.6, 0.4)), ("left", (0.7, 0.2, 0.2)), ("right", (0.2, 0.6, 0.2))):
+            d[key]["bsdf"] = rough_plastic(rgb)
     elif name == "courtyard_sun":
         d = sb.courtyard(size=size)
     elif name == "courtyard_overcast":
@@ -69,8 +79,8 @@ def scene_dict(name: str, size):
     return d
 
 
-SCENES = ("door_diffuse", "door_rough_floor", "door_principled", "courtyard_sun", "courtyard_overcast",
-          "window_pane")
+SCENES = ("door_diffuse", "door_rough_floor", "door_principled", "door_rough_plastic", "courtyard_sun",
+          "courtyard_overcast", "window_pane")
 REPEATS = 2
 
 

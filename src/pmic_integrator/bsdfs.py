@@ -84,6 +84,39 @@ def lobes_separable(bsdf, si: mi.SurfaceInteraction3f, active) -> mi.Bool:
     return ~(active & (f_all > 0) & (f_d + f_r > MASK_IGNORED_RATIO * f_all))
 
 
+#: Configurations at which :func:`ignores_lobe_masks` evaluates a BSDF (incident
+#: directions spread over the hemisphere, texture coordinates over the unit square).
+MASK_PROBE_LANES = 64
+
+
+def ignores_lobe_masks(bsdf: mi.BSDF) -> bool:
+    """Does ``bsdf`` ignore its context's lobe mask anywhere (:func:`lobes_separable`
+    false)? Mitsuba's ``principled`` and ``principledthin`` do, by name; any other
+    (a blend holding one) is found by evaluating it at :data:`MASK_PROBE_LANES`
+    incident directions and texture coordinates. Scenes without one skip the per-vertex
+    test (three BSDF evaluations at every vertex of a mixed BSDF: a fifth of a rough
+    plastic room's camera pass)."""
+    flags = int(bsdf.flags())
+    if not (flags & int(mi.BSDFFlags.Diffuse)) or \
+            not (flags & (int(mi.BSDFFlags.Glossy) | int(mi.BSDFFlags.Delta))):
+        return False  # nothing to take apart
+    if bsdf.class_name() in ("Principled", "PrincipledThin"):
+        return True
+    lanes = MASK_PROBE_LANES
+    k = dr.arange(mi.Float, lanes)
+    u = (k + 0.5) / lanes
+    v = k * 0.6180339887 + 0.5
+    v = v - dr.floor(v)
+    si = dr.zeros(mi.SurfaceInteraction3f, lanes)
+    si.n = mi.Vector3f(0.0, 0.0, 1.0)
+    si.sh_frame = mi.Frame3f(si.n)
+    si.uv = mi.Point2f(u, v)
+    si.wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(v, u))
+    si.dp_du, si.dp_dv = mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0)
+    si.t = 1.0
+    return bool(dr.any(~lobes_separable(bsdf, si, mi.Bool(True))))
+
+
 def near_diffuse(bsdf, si: mi.SurfaceInteraction3f, active, peak_ratio: float) -> mi.Bool:
     """True where the whole BSDF, for the incident direction ``si.wi``, is within
     ``peak_ratio`` of diffuse: its value at the mirror direction at most that many
@@ -91,11 +124,18 @@ def near_diffuse(bsdf, si: mi.SurfaceInteraction3f, active, peak_ratio: float) -
     Lambertian surface has 1; Mitsuba's ``principled`` at roughness 0.5 has 1.3 at
     normal incidence and 6 at 66° (Fresnel), at roughness 0.3 3.7 and 51."""
     active = mi.Bool(active)
-    ctx = mi.BSDFContext()
-    mean = dr.max(diffuse_response(bsdf, si, active, ctx))
+    mean = dr.max(diffuse_response(bsdf, si, active, mi.BSDFContext()))
+    return peak_within(bsdf, si, active, mean, peak_ratio)
+
+
+def peak_within(bsdf, si: mi.SurfaceInteraction3f, active, mean: mi.Float,
+                peak_ratio: float) -> mi.Bool:
+    """:func:`near_diffuse` given ``mean``, the whole BSDF's cosine-weighted mean value
+    (a caller that has its lobes' means adds them up)."""
+    active = mi.Bool(active)
     wo = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
     cos_o = dr.abs(mi.Frame3f.cos_theta(wo))
-    peak = dr.max(mi.Color3f(bsdf.eval(ctx, si, wo, active))) / dr.maximum(cos_o, 1e-6)
+    peak = dr.max(mi.Color3f(bsdf.eval(mi.BSDFContext(), si, wo, active))) / dr.maximum(cos_o, 1e-6)
     return active & (mean > 0) & (peak <= peak_ratio * mean)
 
 

@@ -889,10 +889,12 @@ class RecordIndex:
         return _covered_by(r.position, r.normal, r.radius, self.grid, x, n, self.max_error, active,
                            visibility=self._visibility())
 
-    def _weighted_sum(self, grid: BallGrid, max_error: float, x, n, shading_n, active, label):
+    def _weighted_sum(self, grid: BallGrid, max_error: float, x, n, shading_n, active, label,
+                      with_direct: bool = False):
         """``(Σ wᵢ Eᵢ(x), Σ wᵢ, Σ wᵢ Rᵢ)`` over the records of ``grid`` that reach
         (x, n) with maximum error ``max_error`` and see x, in the grid's order (see
-        :data:`INTERPOLATION_SLOTS`)."""
+        :data:`INTERPOLATION_SLOTS`); with ``with_direct``, and ``Σ wᵢ Dᵢ``, the
+        records' own direct light (part of Eᵢ(x))."""
         r = self.records
         lanes = dr.width(x)
         slots = INTERPOLATION_SLOTS
@@ -910,7 +912,7 @@ class RecordIndex:
         zeros = dr.zeros(mi.UInt32, lanes)
         count, *slot = grid.for_each_ball(x, (zeros, *[mi.UInt32(zeros) for _ in range(slots)]),
                                           find, active=active, label=label + "_find")
-        accumulate = self._record_term(max_error, x, n, shading_n)
+        accumulate = self._record_term(max_error, x, n, shading_n, with_direct)
 
         def cond(k, state):
             return active & (k < dr.minimum(count, slots))
@@ -923,23 +925,25 @@ class RecordIndex:
 
         zero = dr.zeros(mi.Float, lanes)
         empty = (dr.zeros(mi.Color3f, lanes), zero, mi.Float(zero))
+        if with_direct:
+            empty += (dr.zeros(mi.Color3f, lanes),)
         _, state = dr.while_loop((mi.UInt32(zeros), empty), cond, body, label=label)
         # The rare queries that more records reach: the whole cell, every record read.
         crowded = active & (count > slots)
         whole = grid.for_each_ball(x, empty, accumulate, active=crowded, label=label + "_crowded")
         return tuple(dr.select(crowded, a, b) for a, b in zip(whole, state))
 
-    def _record_term(self, max_error: float, x, n, shading_n):
+    def _record_term(self, max_error: float, x, n, shading_n, with_direct: bool = False):
         """``visit(state, index, valid)`` adding record ``index``'s weighted,
         extrapolated irradiance at (x, n) to ``state = (Σ wE, Σ w, Σ wR)`` where it
-        reaches and sees x."""
+        reaches and sees x (with ``with_direct``, also to Σ wD: its direct light)."""
         r = self.records
         record_shading_n = r.shading_normal if r.shading_normal is not None else r.normal
         visibility = self._visibility()
         direct = self.direct
 
         def visit(state, index, valid):
-            total, weight_sum, radius_sum = state
+            total, weight_sum, radius_sum, *direct_sum = state
             rp = dr.gather(mi.Point3f, r.position, index, valid)
             rn = dr.gather(mi.Vector3f, r.normal, index, valid)
             rr = dr.gather(mi.Float, r.radius, index, valid)
@@ -963,10 +967,15 @@ class RecordIndex:
                 ext.append(e[c] + dr.dot(gt, dx) + dr.dot(gr, rot))
             e_x = dr.maximum(mi.Color3f(*ext), 0.0)
             if direct is not None:
-                e_x += dr.gather(mi.Color3f, direct, index, ok)
+                d = dr.gather(mi.Color3f, direct, index, ok)
+                e_x += d
             total = dr.select(ok, total + w * e_x, total)
             weight_sum = dr.select(ok, weight_sum + w, weight_sum)
             radius_sum = dr.select(ok, radius_sum + w * rr, radius_sum)
+            if with_direct:
+                if direct is None:
+                    return total, weight_sum, radius_sum, direct_sum[0]
+                return total, weight_sum, radius_sum, dr.select(ok, direct_sum[0] + w * d, direct_sum[0])
             return total, weight_sum, radius_sum
 
         return visit
@@ -1082,7 +1091,7 @@ class RecordIndex:
         return dr.select(active, dr.maximum(upper - lower, 0.0) * (1.0 / GUIDE_BIN_SOLID_ANGLE), 0.0)
 
     def interpolate(self, x: mi.Point3f, n: mi.Vector3f, active=True, with_radius: bool = False,
-                    shading_n: mi.Vector3f = None):
+                    shading_n: mi.Vector3f = None, with_direct: bool = False):
         """E(x) = Σ wᵢ Eᵢ(x) / Σ wᵢ with gradients; returns ``(E, covered)``, and with
         ``with_radius`` also the weighted mean record radius Σ wᵢ Rᵢ / Σ wᵢ (how far
         the geometry the records saw is: the final gather's trust test).
@@ -1091,27 +1100,29 @@ class RecordIndex:
         record reaches use the records within ``BACKUP_REACH`` × a instead.
         ``covered`` is False where no record is even within the backup reach.
         ``n`` is the geometric normal on the side seen from; ``shading_n`` (default
-        ``n``) the shading normal on that side, for the rotational gradient.
+        ``n``) the shading normal on that side, for the rotational gradient. With
+        ``with_direct``, last comes the part of E that is the records' own direct light
+        (final gather: :attr:`direct`, with caustics where the records hold them).
         """
         lanes = dr.width(x)
         shading_n = mi.Vector3f(n if shading_n is None else shading_n)
         if self.records.count == 0:
             zero = dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes)
-            return zero + (dr.zeros(mi.Float, lanes),) if with_radius else zero
+            zero += (dr.zeros(mi.Float, lanes),) if with_radius else ()
+            return zero + (dr.zeros(mi.Color3f, lanes),) if with_direct else zero
         self._require_lookup()
         active = mi.Bool(active)
-        total, weight_sum, radius_sum = self._weighted_sum(
-            self.grid, self.max_error, x, n, shading_n, active, "cache_interpolation")
-        gap = active & (weight_sum <= 0)
-        total_b, weight_b, radius_b = self._weighted_sum(
-            self.backup_grid, self.max_error * BACKUP_REACH, x, n, shading_n, gap,
-            "cache_interpolation_backup")
-        total = dr.select(gap, total_b, total)
-        weight_sum = dr.select(gap, weight_b, weight_sum)
-        radius_sum = dr.select(gap, radius_b, radius_sum)
+        sums = self._weighted_sum(self.grid, self.max_error, x, n, shading_n, active,
+                                  "cache_interpolation", with_direct)
+        gap = active & (sums[1] <= 0)
+        backup = self._weighted_sum(self.backup_grid, self.max_error * BACKUP_REACH, x, n,
+                                    shading_n, gap, "cache_interpolation_backup", with_direct)
+        total, weight_sum, radius_sum, *direct_sum = (dr.select(gap, b, a) for a, b in zip(sums, backup))
         covered = weight_sum > 0
         safe_sum = dr.maximum(weight_sum, 1e-30)
-        irradiance = dr.select(covered, total / safe_sum, 0.0)
+        out = (dr.select(covered, total / safe_sum, 0.0), covered)
         if with_radius:
-            return irradiance, covered, dr.select(covered, radius_sum / safe_sum, 0.0)
-        return irradiance, covered
+            out += (dr.select(covered, radius_sum / safe_sum, 0.0),)
+        if with_direct:
+            out += (dr.select(covered, direct_sum[0] / safe_sum, 0.0),)
+        return out

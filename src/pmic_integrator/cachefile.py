@@ -65,7 +65,10 @@ FORMAT = "pmic-cache"
 #:     (PreparedScene.caustic_delta_scale).
 #: 23: gather rays go on through principled BSDFs that transmit
 #:     (SceneInfo.has_diffuse_transmission, GatherSource.crossing).
-VERSION = 23
+#: 24: gather rays through a coat stop by Russian roulette where a caustic map holds
+#:     what they would meet (gather.GATHER_ROULETTE): records differ; scene info and
+#:     gather sources say whether some BSDF ignores lobe masks (SceneInfo.has_inseparable).
+VERSION = 24
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

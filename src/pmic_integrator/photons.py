@@ -193,9 +193,10 @@ def shading_normal_factors(si: mi.SurfaceInteraction3f, n: mi.Vector3f, to_light
 
 
 def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
-                 max_store_depth: int, bounds: tuple):
+                 max_store_depth: int, bounds: tuple, inseparable: bool = True):
     """Trace ``n_paths`` light paths; return photon arrays and their path indices.
-    ``bounds``: the scene's :func:`emission_bounds`."""
+    ``bounds``: the scene's :func:`emission_bounds`; ``inseparable``: some BSDF may
+    ignore lobe masks (tested at every bounce)."""
     rng = make_rng(n_paths, seed, stream=first_path)
     path_id = dr.arange(mi.UInt32, n_paths) + opaque_u32(first_path)
     # Not scene.sample_emitter_ray: Mitsuba 3.9 places a rotated envmap's ray origins
@@ -249,7 +250,8 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         u1, u2 = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
         # A bounce off a BSDF that ignores lobe masks (principled) counts as diffuse:
         # the camera path cannot split its lobes either, so it must not be a caustic.
-        separable = lobes_separable(bsdf, si, valid & has_diffuse & _is_specular(flags))
+        separable = lobes_separable(bsdf, si, valid & has_diffuse & _is_specular(flags)) \
+            if inseparable else mi.Bool(True)
         # Rough plastic, for the caustic map: each lobe sampled apart, so that a photon
         # that took the glossy lobe carries that lobe's light only (sample_lobes_apart).
         # (Not for the global map, whose photons' lobe only marks the L S* D paths
@@ -301,7 +303,7 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
 
 def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed: int,
                   max_paths: int, progress=None, warn: bool = True,
-                  give_up_below: int = 0) -> PhotonMap:
+                  give_up_below: int = 0, inseparable: bool = True) -> PhotonMap:
     """Emit light paths in batches until ``target`` photons of ``kind`` are stored (whole
     paths: at most one path's photons more).
 
@@ -329,7 +331,7 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
         batch_paths = int(min(batch_paths, max_paths - emitted))
         pos, nrm, pwr, dep, spec, path, delta, shared = _trace_batch(
             scene, kind, emitted, batch_paths, photon_batch_seed(seed, batch, kind == CAUSTIC),
-            max_store_depth, bounds)
+            max_store_depth, bounds, inseparable)
         got = dr.width(dep)
         remaining = target - stored
         used_paths = batch_paths

@@ -30,7 +30,7 @@ import numpy as np
 from . import cache as cache_mod, streams
 from .emission import is_delta, scene_bbox  # noqa: F401  (scene_bbox re-exported)
 from ._jit import concat, every_nth, opaque_float, rng as make_rng
-from .bsdfs import glossy_beside_diffuse, non_diffuse_context
+from .bsdfs import glossy_beside_diffuse, ignores_lobe_masks, non_diffuse_context
 from .cache import CacheRecords, RecordIndex
 from .gather import NEAR_HIT_LOOKUPS, VISIBILITY_LIFT, GatherSource
 from .hashgrid import BallGrid, PointGridPyramid
@@ -177,6 +177,9 @@ class SceneInfo:
     #: Some BSDF has a diffuse lobe and transmits (principled glass, a principledthin
     #: leaf): gather rays that meet it go on through it (GatherSource.crossing).
     has_diffuse_transmission: bool = False
+    #: Some BSDF ignores lobe masks (principled: bsdfs.ignores_lobe_masks): photons,
+    #: gathers and camera paths test each vertex for it (bsdfs.lobes_separable).
+    has_inseparable: bool = False
 
     @staticmethod
     def of(scene: mi.Scene) -> "SceneInfo":
@@ -184,7 +187,8 @@ class SceneInfo:
         diagonal = float(dr.norm(bbox.extents())) if bbox.valid() else 0.0
         has_diffuse, has_specular, has_coat, has_glossy_coat = False, False, False, False
         has_diffuse_transmission = False
-        for flags in [_bsdf_flags(shape) for shape in scene.shapes()] + _instanced_bsdf_flags(scene):
+        bsdfs = _scene_bsdfs(scene)
+        for flags in [int(bsdf.flags()) for bsdf in bsdfs]:
             has_diffuse |= bool(flags & int(mi.BSDFFlags.Diffuse))
             has_specular |= bool(flags & (int(mi.BSDFFlags.Delta) | int(mi.BSDFFlags.Glossy)))
             has_coat |= bool(flags & int(mi.BSDFFlags.Diffuse)) and \
@@ -200,7 +204,8 @@ class SceneInfo:
         infinite = any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) for e in scene.emitters())
         delta = any(is_delta(e) for e in scene.emitters())
         return SceneInfo(diagonal, area, len(scene.emitters()), has_diffuse, has_specular, infinite,
-                         delta, has_coat, has_glossy_coat, has_diffuse_transmission)
+                         delta, has_coat, has_glossy_coat, has_diffuse_transmission,
+                         any(ignores_lobe_masks(bsdf) for bsdf in bsdfs))
 
 
 @dataclass
@@ -420,7 +425,7 @@ def trace_maps(scene, settings: Settings, info: SceneInfo, need_global: bool, ne
     if need_global:
         global_map = trace_photons(scene, GLOBAL, settings.global_photons, settings.max_depth,
                                    settings.seed, max_paths(settings, settings.global_photons),
-                                   progress.photons)
+                                   progress.photons, inseparable=info.has_inseparable)
         progress.done(f"photons ({GLOBAL})", f"{global_map.count} stored")
     if need_caustic and need_global and global_map.count == 0:
         # Every caustic photon would also have been stored in the global map.
@@ -438,7 +443,8 @@ def trace_maps(scene, settings: Settings, info: SceneInfo, need_global: bool, ne
         minimum = int(CAUSTIC_MIN_YIELD * settings.caustic_photons)
         caustic_map = trace_photons(scene, CAUSTIC, settings.caustic_photons, settings.max_depth,
                                     settings.seed, paths, progress.photons, warn=False,
-                                    give_up_below=minimum if droppable else 0)
+                                    give_up_below=minimum if droppable else 0,
+                                    inseparable=info.has_inseparable)
         progress.done(f"photons ({CAUSTIC})", f"{caustic_map.count} stored")
         if caustic_map.count < minimum and droppable:
             skipped.append(f"caustic map: {caustic_map.count} of {settings.caustic_photons} "
@@ -515,6 +521,7 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
             global_radius)
         gather_source.caustics_by_gathering = caustic_map.count == 0
         gather_source.crossing = info.has_diffuse_transmission
+        gather_source.inseparable = info.has_inseparable
         if depth_limit is None:
             gather_source.near_hit_distance = NEAR_HIT_LOOKUPS * global_radius
         if gather_source.photons.count == 0:
@@ -833,15 +840,22 @@ def _bsdf_flags(shape) -> int:
     return int(bsdf.flags()) if bsdf is not None else 0
 
 
-def _instanced_bsdf_flags(scene: mi.Scene) -> list[int]:
-    """The flags of every BSDF in the scene graph when some shape is an instance (of a
-    ``shapegroup``), else none: an instance reports a default diffuse BSDF of its own,
-    not those of the shapes it holds (a glass sphere held in one left the scene without
-    a caustic map, its caustic 0.7-0.9 % of the image dark at 64 spp, and a rough
-    plastic there would not have had its lobes sampled apart)."""
-    if not any(shape.class_name() == "Instance" for shape in scene.shapes()):
-        return []
-    return [int(node.flags()) for node in mi.traverse(scene).hierarchy if isinstance(node, mi.BSDF)]
+def _scene_bsdfs(scene: mi.Scene) -> list:
+    """The shapes' BSDFs, each once, and where some shape is an instance (of a
+    ``shapegroup``) every BSDF in the scene graph: an instance reports a default diffuse
+    BSDF of its own, not those of the shapes it holds (a glass sphere held in one left
+    the scene without a caustic map, its caustic 0.7-0.9 % of the image dark at 64 spp,
+    and a rough plastic there would not have had its lobes sampled apart)."""
+    found = {}
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if bsdf is not None:
+            found.setdefault(id(bsdf), bsdf)
+    if any(shape.class_name() == "Instance" for shape in scene.shapes()):
+        for node in mi.traverse(scene).hierarchy:
+            if isinstance(node, mi.BSDF):
+                found.setdefault(id(node), node)
+    return list(found.values())
 
 
 def _shape_order(shape_and_area):
