@@ -68,7 +68,9 @@ FORMAT = "pmic-cache"
 #: 24: gather rays through a coat stop by Russian roulette where a caustic map holds
 #:     what they would meet (gather.GATHER_ROULETTE): records differ; scene info and
 #:     gather sources say whether some BSDF ignores lobe masks (SceneInfo.has_inseparable).
-VERSION = 24
+#: 25: the global pass of a scene lit through openings guides its emission
+#:     (photons.EmissionGuide): other photons.
+VERSION = 25
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
