@@ -140,27 +140,40 @@ def test_sky_shadow_rays_reach_past_a_roof_whatever_mitsubas_scene_box():
     assert abs(ours_apart / path_apart - 1) < 0.03
 
 
-def test_photons_of_a_room_lit_through_a_window_are_guided_to_it(monkeypatch):
+def test_photons_of_a_room_lit_through_a_window_are_guided_to_it():
     """A room of one-sided walls lit by a sky through a window: most emitted paths
     meet its outside, where nothing is stored. Once the first batch shows it (under
     EMISSION_GUIDE_BELOW photons per path), emission samples are drawn where that
     batch stored photons, each path's flux over their density: the same light enters
     (the power the room's surfaces receive first, within its noise) from a fraction of
-    the paths (0.38 of them here: 27 paths a photon before, 10 now)."""
+    the paths (0.38 of them here: 27 paths a photon before, 10 now). The pipeline
+    guides a room without specular surfaces (no caustic pass, whose map the global
+    pass's photons would join)."""
     import scene_builders as sb
     from pmic_integrator import photons as ph
+    from pmic_integrator import pipeline
 
     scene = mi.load_dict(sb.window_room())
 
-    def first_bounce_power(seed):
-        photon_map = ph.trace_photons(scene, ph.GLOBAL, 40_000, -1, seed, 10_000_000, warn=False)
+    def first_bounce_power(seed, guide):
+        photon_map = ph.trace_photons(scene, ph.GLOBAL, 40_000, -1, seed, 10_000_000, warn=False,
+                                      guide_emission=guide)
         first = np.array(photon_map.depth) == 1
         return float(np.array(photon_map.power)[:, first].sum()), photon_map.paths_emitted
 
-    guided = [first_bounce_power(seed) for seed in (1, 2)]
-    monkeypatch.setattr(ph, "EMISSION_GUIDE_BELOW", 0.0)
-    plain = [first_bounce_power(seed) for seed in (1, 2)]
+    guided = [first_bounce_power(seed, True) for seed in (1, 2)]
+    plain = [first_bounce_power(seed, False) for seed in (1, 2)]
     assert max(p for _, p in guided) < 0.5 * min(p for _, p in plain)  # (0.38)
     mean_guided = np.mean([w for w, _ in guided])
     mean_plain = np.mean([w for w, _ in plain])
     assert mean_guided == pytest.approx(mean_plain, rel=0.03)
+    # The pipeline's choice: this room (diffuse) is guided.
+    prepared = pipeline.prepare(scene, pipeline.Settings.parse(_props(global_photons=40_000)))
+    assert prepared.global_map.paths_emitted < 0.5 * min(p for _, p in plain)
+
+
+def _props(**values):
+    props = mi.Properties()
+    for key, value in values.items():
+        props[key] = value
+    return props

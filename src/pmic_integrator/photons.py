@@ -407,7 +407,8 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
 
 def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed: int,
                   max_paths: int, progress=None, warn: bool = True,
-                  give_up_below: int = 0, inseparable: bool = True) -> PhotonMap:
+                  give_up_below: int = 0, inseparable: bool = True,
+                  guide_emission: bool = False) -> PhotonMap:
     """Emit light paths in batches until ``target`` photons of ``kind`` are stored (whole
     paths: at most one path's photons more).
 
@@ -417,7 +418,8 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     unbounded). At most ``max_paths`` light paths are emitted, and none more once the
     yield so far, carried on to ``max_paths``, would store fewer than
     ``give_up_below`` photons (a map the caller drops below some count: its paths
-    would be traced for nothing).
+    would be traced for nothing). With ``guide_emission``, a global pass lit by an
+    environment through openings guides its emission (:class:`EmissionGuide`).
     """
     if target <= 0 or len(scene.emitters()) == 0:
         return PhotonMap.empty()
@@ -432,7 +434,7 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     start = time.perf_counter()
     bounds = emission_bounds(scene)  # once: every batch shoots from the same rectangles
     guide = None
-    may_guide = kind == GLOBAL and \
+    may_guide = guide_emission and kind == GLOBAL and \
         any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) for e in scene.emitters())
     while stored < target and emitted < max_paths:
         batch_paths = int(min(batch_paths, max_paths - emitted))
