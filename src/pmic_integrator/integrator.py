@@ -14,9 +14,8 @@ from mitsuba.ad.integrators.common import mis_weight
 
 from . import cachefile, camera, pipeline, streams
 from ._jit import ONE_MINUS_EPSILON, jittered, shading_normal_on_side, surface_offset
-from .bsdfs import (GLOSSY_LOBE_PROBABILITY, diffuse_context, diffuse_response, glossy_beside_diffuse,
-                    lobes_separable, near_diffuse, non_diffuse_context, peak_within,
-                    sample_lobes_apart)
+from .bsdfs import (diffuse_context, diffuse_response, glossy_beside_diffuse, lobes_separable,
+                    near_diffuse, non_diffuse_context, peak_within)
 from .emission import sample_emitter_direction
 from . import skylight
 from .gather import trace_gather_rays
@@ -550,8 +549,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
         diffuse_mis = prepared.info.has_infinite_emitter
         delta_lights = prepared.info.has_delta_emitter
         coat_rays = prepared.info.has_delta_coat
-        # Rough plastic past a vertex that read the caustic map: lobes sampled apart.
-        lobes_apart = gather_first and has_caustic_map and prepared.info.has_glossy_coat
+        # Rough plastic at and past a vertex that read the caustic map: each sample
+        # split between its lobes (see the loop).
+        lobes_split = gather_first and has_caustic_map and prepared.info.has_glossy_coat
         # BSDFs whose lobes cannot be taken apart (principled) read the cache with their
         # whole response where a diffuse one would (see the loop).
         whole_reads = gather_first and not bounded and prepared.info.has_glossy_coat
@@ -734,19 +734,6 @@ class PMICIntegrator(mi.SamplingIntegrator):
                 coat_read &= peak_within(bsdf, si, coat_read, dr.max(response + coat_response),
                                          WHOLE_PEAK_RATIO)
                 trusted_whole |= coat_read
-            # A rough plastic traced once armed: light through its glossy lobe is a caustic
-            # the map holds, through its diffuse lobe the path's, and the lobe sampled
-            # decides whether the emission met next is counted. Mitsuba weighs a sample of
-            # the whole BSDF by f_all / p_all whichever lobe it took, which left part of
-            # the glossy lobe's light in (a window-lit room 1 % too bright): the lobes
-            # are sampled apart there (sample_lobes_apart), without guiding. (Not where
-            # a vertex reads the caustic map itself, whose lobe decides whether the
-            # chain it starts is armed: apart there too, the room's mean stayed 0.9988
-            # of path's at max_depth 3, and its floor lost the guided continuations:
-            # relMSE 3.1e-3 -> 3.75e-3.)
-            apart = mi.Bool(False)
-            if dr.hint(lobes_apart, mode="scalar"):
-                apart = active_next & traced_here & armed & separable & glossy_beside_diffuse(flags)
 
             # Guiding: where a record reaches a traced vertex, part of its continuation
             # follows the record's distribution of gathered light (GUIDE_FRACTION).
@@ -754,7 +741,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             guide_fraction = mi.Float(0.0)
             if dr.hint(guiding, mode="scalar"):
                 guide_record, bounced_share = self._view.index.guide_record(si.p, n, traced_here & active_next)
-                guide_fraction = dr.select(apart, 0.0, GUIDE_FRACTION * bounced_share)
+                guide_fraction = GUIDE_FRACTION * bounced_share
             sky_fraction = mi.Float(0.0)
             if dr.hint(sky_guided, mode="scalar"):
                 sees = self._view.index.sees_sky(guide_record, traced_here & (guide_fraction > 0))
@@ -765,7 +752,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             light_fraction = mi.Float(0.0)
             if dr.hint(lit, mode="scalar"):
                 light_total = self._view.index.lights.total_weight(si.p, n, traced_here & active_next)
-                light_fraction = dr.select((light_total > 0) & ~apart, LIGHT_FRACTION, 0.0)
+                light_fraction = dr.select(light_total > 0, LIGHT_FRACTION, 0.0)
 
             # Final gather: a trusted vertex reads all of its light from the cache (the
             # records hold direct light too; where none reaches, the precomputed
@@ -782,8 +769,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                             traced_here, armed, from_records,
                                             diffuse_mis, ctx_all, ctx_diffuse, ctx_rest,
                                             guide_record, guide_fraction if guiding else None,
-                                            sky_fraction if sky_guided else None,
-                                            apart if lobes_apart else None)
+                                            sky_fraction if sky_guided else None)
 
             # ---- Direct light on the diffuse lobe by BSDF sampling (MIS) ----
             if dr.hint(diffuse_mis, mode="scalar"):
@@ -881,13 +867,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                        0.0, ONE_MINUS_EPSILON), u1)
             bs, bsdf_weight = bsdf.sample(ctx_rest, si, u1, u2, active_next & ~whole)
             bs_all, weight_all = bsdf.sample(ctx_all, si, u1, u2,
-                                             active_next & whole & ~pick_guide & ~pick_light & ~apart)
+                                             active_next & whole & ~pick_guide & ~pick_light)
             bs[whole] = bs_all
             bsdf_weight[whole] = weight_all
-            if dr.hint(lobes_apart, mode="scalar"):
-                bs_apart, weight_apart = sample_lobes_apart(bsdf, si, u1, u2, apart)
-                bs[apart] = bs_apart
-                bsdf_weight[apart] = weight_apart
             mis_pdf = mi.Float(bs.pdf)
             if dr.hint(guiding | lit, mode="scalar"):
                 bs, bsdf_weight, mis_pdf = self._mixed_continuation(
@@ -895,18 +877,22 @@ class PMICIntegrator(mi.SamplingIntegrator):
                     pick_guide, guide_record, guide_fraction if guiding else None,
                     pick_light, u_light, light_total, light_fraction if lit else None)
             sampled_diffuse = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
-            if dr.hint(lobes_apart, mode="scalar"):
-                # At the traced vertex that reads the caustic map itself, the light its
-                # continuation brings is the map's where it leaves by the diffuse lobe and
-                # was a coat's reflection of the lights (so not counted again past it),
-                # and the path's where it leaves by the coat. A sample of the whole BSDF
+            if dr.hint(lobes_split, mode="scalar"):
+                # A rough plastic traced where it reads the caustic map, or once armed:
+                # light that leaves by its diffuse lobe after a coat's reflection of the
+                # lights is a caustic the map holds (not counted again past it), light
+                # that leaves by the coat is the path's, so which lobe the sample counts
+                # as decides what the path counts next. A sample of the whole BSDF
                 # carries both lobes' values (f_all / p, guided or not), whichever lobe
                 # drew it: counted by the lobe drawn, a box of strong rough plastic
-                # (index 2.5) came out 2.5 % dark on its floor. The sample now belongs
-                # to the diffuse lobe with probability f_d / (f_d + f_rest) at its
-                # direction, to the rest otherwise, with weight f_lobe / (p · that
-                # probability): each lobe's light, unbiased, and guiding kept.
-                split = active_next & traced_here & read_caustic & ~apart & separable & \
+                # (index 2.5) came out 2.5 % dark on its floor, and a window-lit room
+                # 1 % bright. The sample belongs to the diffuse lobe with probability
+                # f_d / (f_d + f_rest) at its direction, to the rest otherwise, with
+                # weight f_lobe / (p · that probability): each lobe's light, unbiased,
+                # and guiding kept. (Armed vertices sampled the lobes apart before,
+                # half and half, unguided: a door-lit room of rough plastic's relMSE
+                # 9.5e-4 -> 9.0e-4 at 16 spp, the same time.)
+                split = active_next & traced_here & (read_caustic | armed) & separable & \
                     glossy_beside_diffuse(flags) & (bs.pdf > 0)
                 f_lobe_d = mi.Color3f(bsdf.eval(ctx_diffuse, si, bs.wo, split))
                 f_lobe_rest = mi.Color3f(bsdf.eval(ctx_rest, si, bs.wo, split))
@@ -1027,7 +1013,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
     def _direct_light(self, scene, sampler, si, normal, bsdf, active, separable, traced, armed,
                       no_diffuse, diffuse_mis, ctx_all, ctx_diffuse, ctx_rest,
-                      guide_record=None, guide_fraction=None, sky_fraction=None, apart=None):
+                      guide_record=None, guide_fraction=None, sky_fraction=None):
         """Mean of ``direct_samples`` emitter samples (shadow rays) at ``si``.
 
         Separable BSDFs: the diffuse lobe takes emitter samples alone (or shares them by
@@ -1040,9 +1026,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         mixture density (:meth:`_mixed_continuation`: without its bright-record
         strategy, as the continuation's own emitter hits do). Where ``sky_fraction`` >
         0, every other sample of the sky follows the sky ``guide_record`` saw
-        (:data:`SKY_EMITTER_FRACTION`). Where ``apart``, the continuation samples each
-        lobe alone (:func:`sample_lobes_apart`): each lobe's samples are weighed against
-        the density that samples that lobe.
+        (:data:`SKY_EMITTER_FRACTION`).
         """
         n_em = float(self.settings.direct_samples)
         index = self._view.index
@@ -1066,8 +1050,6 @@ class PMICIntegrator(mi.SamplingIntegrator):
             # whole BSDF): unless armed, one evaluation of the whole serves (its three
             # evaluations were a fifth of the material preview's direct light).
             split = separable & ~(traced & ~armed)
-            if apart is not None:
-                split |= apart
             f_diffuse, pdf_diffuse_lobe = bsdf.eval_pdf(ctx_diffuse, si, wo, ok & split)
             f_rest, pdf_rest_lobe = bsdf.eval_pdf(ctx_rest, si, wo, ok & split)
             f_all, pdf_all = bsdf.eval_pdf(ctx_all, si, wo, ok & (~separable | traced))
@@ -1077,11 +1059,6 @@ class PMICIntegrator(mi.SamplingIntegrator):
                     guide_record, ds.d, ok & (guide_fraction > 0))
             pdf_rest = dr.select(separable & ~traced, pdf_rest_lobe, pdf_all)
             pdf_diffuse = dr.select(traced, pdf_all, pdf_diffuse_lobe)
-            if apart is not None:
-                # Sampled apart: each lobe against the density that samples it alone.
-                q = GLOSSY_LOBE_PROBABILITY
-                pdf_rest = dr.select(apart, q * pdf_rest_lobe, pdf_rest)
-                pdf_diffuse = dr.select(apart, (1.0 - q) * pdf_diffuse_lobe, pdf_diffuse)
             f_rest = dr.select(split, f_rest, f_all)
             f_rest = dr.select(separable & armed, 0.0, f_rest)
             f_diffuse = dr.select(split & ~no_diffuse, f_diffuse, 0.0)
