@@ -54,18 +54,19 @@ MAX_PHOTON_BOUNCES = 64
 MAX_SURVIVAL = 0.95
 #: Photon maps smaller than this fraction of the request trigger a warning.
 LOW_YIELD_FRACTION = 0.5
-#: Emission guiding (:class:`EmissionGuide`): a pass whose first batch, lit by an
-#: environment, stores fewer photons than this per emitted path (a room lit through
-#: a window: 0.01, 88 paths per photon, most of them meeting the outside walls or
-#: shot where the sun cannot enter) draws its later emission samples where the first
-#: batch's paths stored photons. Open scenes store 0.5-2 per path and are left alone.
+#: Emission guiding (:class:`EmissionGuide`; global passes with no caustic pass to
+#: come, see ``guide_emission``): a pass whose first batch, lit by an environment,
+#: stores fewer photons than this per emitted path (a room lit through a window: 0.01,
+#: 88 paths per photon, most of them meeting the outside walls or shot where the sun
+#: cannot enter) draws its later emission samples where the first batch's paths
+#: stored photons. Open scenes store 0.5-2 per path and are left alone.
 EMISSION_GUIDE_BELOW = 0.1
 #: Cells per side of each of the two sample squares guided (the emission origin's and
 #: the direction's): 256 cells, ~256 first-batch paths each.
 EMISSION_GUIDE_CELLS = 16
 #: Share of each guided square's density kept uniform (defensive mixture: a cell where
-#: the first batch stored nothing is still sampled, its photons at most 1/0.25 = 4x
-#: the power per square, 16x for both, where they would otherwise be shot and lost).
+#: the first batch stored nothing is still sampled, its photons at most 1/0.5 = 2x
+#: the power per square, 4x for both, where they would otherwise be shot and lost).
 EMISSION_GUIDE_UNIFORM = 0.5
 #: ...and no cell more than this many times the uniform density before the mixture
 #: (so at most 2.5x after it): photons' powers stay within 5x of one another per
@@ -290,9 +291,9 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
     guided_weight = None
     if guide is not None or samples is not None:
         # Environment paths only: a sun's or a lamp's do not miss a window the same way,
-        # and a density they do not need only adds noise to their photons' power
-        # (a directional light ignores the direction square: its weight would be noise
-        # alone; the bundled interior_window's relMSE 3.2e-3 -> 3.8e-3).
+        # and a density they do not need only adds noise to their photons' power (a
+        # directional light ignores the direction square: its weight would be noise
+        # alone).
         chosen = dr.gather(mi.EmitterPtr, scene.emitters_dr(), choose_emitter(scene, u_choice)[0])
         environment = mi.has_flag(chosen.flags(), mi.EmitterFlags.Infinite)
     if guide is not None:
