@@ -128,3 +128,25 @@ def jittered(u: mi.Point2f, index: mi.UInt32, count: int) -> mi.Point2f:
     cell = mi.Point2f(mi.Float(index % side), mi.Float(index // side))
     moved = dr.minimum((cell + u) * (1.0 / side), ONE_MINUS_EPSILON)
     return dr.select(index < side * side, moved, u)
+
+
+def only_where(mask, compute, zeros, sampler=None, label: str = "only_where"):
+    """``compute()`` on the lanes of ``mask`` and ``zeros()`` on the others, as a
+    symbolic conditional: the LLVM backend then skips ``compute``'s code for every
+    SIMD packet with no lane in ``mask``. Masked code outside a conditional runs for
+    every packet (a 16-lane packet pays for it even with no lane active): in the
+    camera loop, most of a vertex's work is for some of the lanes only (the cache
+    read behind a traced vertex, emitter samples at traced ones, the rare fallback
+    to the photons).
+
+    ``compute`` must have no side effects but on ``sampler`` (given: ``compute`` and
+    ``zeros`` take it, its state advances on the lanes of ``mask`` only).
+    Returns what ``compute`` does.
+    """
+    mask = mi.Bool(mask)
+    if sampler is None:
+        return dr.if_stmt((), mask, true_fn=compute, false_fn=zeros, label=label)
+    _, result = dr.if_stmt((sampler,), mask,
+                           true_fn=lambda s: (s, compute(s)),
+                           false_fn=lambda s: (s, zeros(s)), label=label)
+    return result

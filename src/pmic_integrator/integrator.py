@@ -13,7 +13,7 @@ import mitsuba as mi
 from mitsuba.ad.integrators.common import mis_weight
 
 from . import cachefile, camera, pipeline, streams
-from ._jit import ONE_MINUS_EPSILON, jittered, shading_normal_on_side, surface_offset
+from ._jit import ONE_MINUS_EPSILON, jittered, only_where, shading_normal_on_side, surface_offset
 from .bsdfs import (diffuse_context, diffuse_response, glossy_beside_diffuse, lobes_separable,
                     near_diffuse, non_diffuse_context, peak_within)
 from .emission import sample_emitter_direction
@@ -84,6 +84,14 @@ DEFERRED_WAVEFRONT = 1 << 22
 #: vertex, and at most MAX_TRACED_BOUNCES vertices are traced (with more, reads stay in
 #: the loop: _defers_caustics).
 DEFERRED_READS = 3
+#: Behind a traced vertex, a vertex that reads the cache and goes on through a weak
+#: glossy lobe alone (a rough plastic's coat: its sample weight is the few per cent
+#: the coat reflects) survives with probability weight / this (Russian roulette,
+#: unbiased), as gather rays do (:data:`~pmic_integrator.gather.GATHER_ROULETTE_BELOW`).
+#: Mitsuba's roulette waits for ``rr_depth``: until then such paths went on as chains
+#: of weak coat bounces, each vertex reading the cache, sampling the lights and
+#: evaluating the BSDF again.
+COAT_ROULETTE_BELOW = 0.5
 
 
 def _finite(value, active=True):
@@ -456,8 +464,14 @@ class PMICIntegrator(mi.SamplingIntegrator):
         if index is None:
             zero = dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes), dr.zeros(mi.Float, lanes)
             return zero + (dr.zeros(mi.Color3f, lanes),) if with_direct else zero
-        return index.interpolate(p, n, active, with_radius=True, shading_n=shading_n,
-                                 with_direct=with_direct)
+        def zeros():
+            zero = dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes), dr.zeros(mi.Float, lanes)
+            return zero + (dr.zeros(mi.Color3f, lanes),) if with_direct else zero
+        # (Behind a traced vertex only: at the camera's first vertex no lane reads it.)
+        return only_where(active, lambda: index.interpolate(p, n, active, with_radius=True,
+                                                            shading_n=shading_n,
+                                                            with_direct=with_direct),
+                          zeros, label="cache_lookup")
 
     def _count_fallback(self, need):
         """Count the camera vertices that no record reached (stats)."""
@@ -495,7 +509,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
         # Without delta lights' direct light where the photons keep it apart (the
         # vertex samples it: _trusted_direct).
         nodelta = source.photons.irradiance_nodelta is not None
-        return dr.select(covered, cached, source.irradiance_at(scene, si, n, need, without_delta=nodelta))
+        # (Rare: a vertex no record reaches, past every probe.)
+        fallback = only_where(need, lambda: source.irradiance_at(scene, si, n, need, without_delta=nodelta),
+                              lambda: dr.zeros(mi.Color3f, dr.width(si.p)), label="photon_fallback")
+        return dr.select(covered, cached, fallback)
 
     def _photon_estimate(self, p, n, depth_limit, active):
         """Global-map estimate of light that bounced at least once (direct light and
@@ -642,14 +659,12 @@ class PMICIntegrator(mi.SamplingIntegrator):
             flags = bsdf.flags()
 
             # ---- Emission reached by BSDF sampling (MIS with emitter sampling) ----
-            ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
-            em_pdf = self._emitter_pdf(scene, prev_si, ds, prev_normal, ~prev_bsdf_delta,
-                                       prev_sky_record, prev_sky_fraction if sky_guided else None)
-            mis = dr.select(prev_bsdf_delta, 1.0, mis_weight(prev_bsdf_pdf, n_em * em_pdf))
             shown = active & ~crossed & ~coat_counted
             if dr.hint(hide_emitters, mode="scalar"):
                 shown &= ~((depth == 0) & ~si.is_valid())
-            emitted = _finite(β * mis * ds.emitter.eval(si, shown), shown)
+            emitted = self._emission(scene, si, prev_si, prev_normal, prev_bsdf_pdf,
+                                     prev_bsdf_delta, prev_sky_record,
+                                     prev_sky_fraction if sky_guided else None, β, shown)
             L += emitted
 
             active_next = active & si.is_valid() & (depth + 1 < max_depth)
@@ -912,6 +927,14 @@ class PMICIntegrator(mi.SamplingIntegrator):
             armed = dr.select(restart, read_caustic, armed & ~ended)
             traced[traced_here | traced_whole] = traced + 1
             coat_counted = coat & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            if dr.hint(coat_reads, mode="scalar"):
+                weak = active_next & ~whole & (traced > 0) & \
+                    mi.has_flag(bs.sampled_type, mi.BSDFFlags.Glossy)
+                survival = dr.minimum(dr.max(bsdf_weight) * (1.0 / COAT_ROULETTE_BELOW), 1.0)
+                weak &= survival < 1.0
+                bsdf_weight[weak] = bsdf_weight / dr.maximum(survival, 1e-8)
+                # (drawn for those lanes only: the others' random streams are unchanged)
+                active_next &= ~weak | (sampler.next_1d(weak) < survival)
             β *= bsdf_weight
             η *= bs.eta
             prev_si = dr.detach(si, True)
@@ -1003,6 +1026,21 @@ class PMICIntegrator(mi.SamplingIntegrator):
         guides["normal"] = dr.select(hit, si.sh_frame.n, 0.0)
         return guides
 
+    def _emission(self, scene, si, prev_si, prev_normal, prev_bsdf_pdf, prev_bsdf_delta,
+                  prev_sky_record, prev_sky_fraction, β, shown):
+        """Emission met at ``si`` (the lanes of ``shown``), MIS-weighted against the
+        emitter samples of the previous vertex unless a delta lobe led here."""
+        shown = shown & (si.emitter(scene) != None)  # noqa: E711
+
+        def compute():
+            ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
+            em_pdf = self._emitter_pdf(scene, prev_si, ds, prev_normal, shown & ~prev_bsdf_delta,
+                                       prev_sky_record, prev_sky_fraction)
+            mis = dr.select(prev_bsdf_delta, 1.0, mis_weight(prev_bsdf_pdf, float(self.settings.direct_samples) * em_pdf))
+            return _finite(β * mis * ds.emitter.eval(si, shown), shown)
+        return only_where(shown, compute, lambda: dr.zeros(mi.Spectrum, dr.width(si.p)),
+                          label="emission")
+
     def _emitter_pdf(self, scene, ref, ds, normal, active, sky_record=None, sky_fraction=None):
         """Density of the emitter samples of :meth:`_direct_light` at ``ref`` (shading
         normal ``normal``; ``sky_record``, ``sky_fraction``: the sky guide they followed)
@@ -1069,7 +1107,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
             return _finite(em_weight * (f_diffuse * w_diffuse + f_rest * w_rest), ok)
 
         if self.settings.direct_samples == 1:
-            return one_sample(sampler)
+            return only_where(active, lambda sampler: one_sample(sampler),
+                              lambda sampler: dr.zeros(mi.Spectrum, dr.width(si.p)), sampler,
+                              label="pmic_direct_light")
 
         def body(k, total, sampler):
             return k + 1, total + one_sample(sampler, k), sampler
@@ -1091,10 +1131,13 @@ class PMICIntegrator(mi.SamplingIntegrator):
         replaces that estimate by its mean over the choice of lobe. In the material
         preview the coat's reflection of the sky was half the noise left on the
         object."""
-        bs, weight = bsdf.sample(ctx_rest, si, sampler.next_1d(), sampler.next_2d(), active)
-        active = active & (bs.pdf > 0) & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-        hit = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), active)
-        return _finite(weight * hit.emitter(scene, active).eval(hit, active), active)
+        def compute(sampler):
+            bs, weight = bsdf.sample(ctx_rest, si, sampler.next_1d(), sampler.next_2d(), active)
+            ok = active & (bs.pdf > 0) & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            hit = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), ok)
+            return _finite(weight * hit.emitter(scene, ok).eval(hit, ok), ok)
+        return only_where(active, compute, lambda sampler: dr.zeros(mi.Spectrum, dr.width(si.p)),
+                          sampler, label="coat_emission")
 
     def _mixed_continuation(self, si, n, bsdf, bs, weight, u2, active,
                             pick_guide, guide_record, guide_fraction,
@@ -1159,24 +1202,30 @@ class PMICIntegrator(mi.SamplingIntegrator):
         photons it may read instead hold (their sharp shadows would be smeared): one
         sample of them, a shadow ray, exact up to visibility. No MIS: a delta light
         cannot be hit, and the lobe does not continue."""
-        ds, em_weight = sample_emitter_direction(scene, si, sampler.next_2d(), True, active,
-                                                 delta=True)
-        ok = mi.Bool(active) & (ds.pdf != 0.0)
-        f = bsdf.eval(ctx_diffuse, si, si.to_local(ds.d), ok)
-        return _finite(em_weight * f, ok)
+        def compute(sampler):
+            ds, em_weight = sample_emitter_direction(scene, si, sampler.next_2d(), True, active,
+                                                     delta=True)
+            ok = mi.Bool(active) & (ds.pdf != 0.0)
+            f = bsdf.eval(ctx_diffuse, si, si.to_local(ds.d), ok)
+            return _finite(em_weight * f, ok)
+        return only_where(active, compute, lambda sampler: dr.zeros(mi.Spectrum, dr.width(si.p)),
+                          sampler, label="trusted_direct")
 
     def _diffuse_emitter_hit(self, scene, sampler, si, normal, bsdf, active, ctx_diffuse, n_em):
         """Direct light on the diffuse lobe from one BSDF-sampled ray that meets an
         emitter (an area light or the environment), MIS-weighted against the
         ``direct_samples`` emitter samples of :meth:`_direct_light`."""
-        bs, weight = bsdf.sample(ctx_diffuse, si, sampler.next_1d(), sampler.next_2d(), active)
-        ok = active & (bs.pdf > 0)
-        ray = si.spawn_ray(si.to_world(bs.wo))
-        hit = scene.ray_intersect(ray, mi.RayFlags.All, coherent=False, active=ok)
-        ds = mi.DirectionSample3f(scene, si=hit, ref=si)
-        em_pdf = self._emitter_pdf(scene, si, ds, normal, ok)
-        emitted = ds.emitter.eval(hit, ok)
-        return _finite(weight * emitted * mis_weight(bs.pdf, n_em * em_pdf), ok)
+        def compute(sampler):
+            bs, weight = bsdf.sample(ctx_diffuse, si, sampler.next_1d(), sampler.next_2d(), active)
+            ok = active & (bs.pdf > 0)
+            ray = si.spawn_ray(si.to_world(bs.wo))
+            hit = scene.ray_intersect(ray, mi.RayFlags.All, coherent=False, active=ok)
+            ds = mi.DirectionSample3f(scene, si=hit, ref=si)
+            em_pdf = self._emitter_pdf(scene, si, ds, normal, ok)
+            emitted = ds.emitter.eval(hit, ok)
+            return _finite(weight * emitted * mis_weight(bs.pdf, n_em * em_pdf), ok)
+        return only_where(active, compute, lambda sampler: dr.zeros(mi.Spectrum, dr.width(si.p)),
+                          sampler, label="diffuse_emitter_hit")
 
     def _final_gather_ray(self, scene, sampler, si, n, active):
         """One cosine-distributed gather ray reading precomputed irradiance: E ≈ π L."""
