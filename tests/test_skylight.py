@@ -38,6 +38,30 @@ def test_only_one_non_delta_environment_gets_tables():
     assert constant is not None and constant.pmf == 1.0
 
 
+def test_sampling_through_the_guide_picks_the_cell_a_full_search_picks():
+    """sample() searches only between the cutpoints of u's slice (GUIDE_SLOTS): the cell
+    must be exactly the first whose cumulative value exceeds u, as a search of the
+    whole table finds it, also for u just below 1 and on the cutpoints themselves."""
+    sky = SkySampler.build(_sky_scene())
+    rng = np.random.default_rng(3)
+    count = 20000
+    normal = rng.normal(size=(3, count))
+    normal /= np.linalg.norm(normal, axis=0)
+    u = rng.random((2, count)).astype(np.float32)
+    u[0, :100] = np.float32(1.0) - np.float32(2.0 ** -24)
+    u[0, 100:200] = np.arange(100, dtype=np.float32) / skylight.GUIDE_SLOTS
+    n = mi.Vector3f(*(c.astype(np.float32) for c in normal))
+    d, _ = sky.sample(n, mi.Point2f(u[0], u[1]))
+    band, sector = skylight._cell_of(d, skylight.SKY_BANDS, skylight.SKY_SECTORS)
+    drawn = np.array(band) * skylight.SKY_SECTORS + np.array(sector)
+    cells = skylight.SKY_BANDS * skylight.SKY_SECTORS
+    cdf = np.array(sky.cdf).reshape(-1, cells)
+    bins = np.array(sky._bin(n))
+    expected = np.array([min(np.searchsorted(cdf[b], x, side="right"), cells - 1)
+                         for b, x in zip(bins, u[0])])
+    assert np.array_equal(drawn, expected)
+
+
 @pytest.mark.parametrize("normal", [(0, 1, 0), (1, 0, 0), (0.3, -0.2, 0.9), (0, 0, -1)])
 def test_table_density_integrates_to_one_and_is_what_sample_draws(normal):
     sky = SkySampler.build(_sky_scene())
