@@ -141,7 +141,10 @@ def only_where(mask, compute, zeros, sampler=None, label: str = "only_where"):
 
     ``compute`` must have no side effects but on ``sampler`` (given: ``compute`` and
     ``zeros`` take it, its state advances on the lanes of ``mask`` only).
-    Returns what ``compute`` does.
+    Returns what ``compute`` does. ``zeros`` should make new values: passing values of
+    the enclosing loop through it unchanged (a BSDFSample3f, in the camera loop) made
+    Dr.Jit 1.5 emit LLVM IR that failed verification ("Instruction does not dominate
+    all uses").
     """
     mask = mi.Bool(mask)
     if sampler is None:

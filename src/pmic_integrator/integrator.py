@@ -765,7 +765,11 @@ class PMICIntegrator(mi.SamplingIntegrator):
             guide_record = mi.UInt32(0)
             guide_fraction = mi.Float(0.0)
             if dr.hint(guiding, mode="scalar"):
-                guide_record, bounced_share = self._view.index.guide_record(si.p, n, traced_here & active_next)
+                guided_here = traced_here & active_next
+                guide_record, bounced_share = only_where(
+                    guided_here, lambda: self._view.index.guide_record(si.p, n, guided_here),
+                    lambda: (dr.zeros(mi.UInt32, dr.width(si.p)), dr.zeros(mi.Float, dr.width(si.p))),
+                    label="guide_record")
                 guide_fraction = GUIDE_FRACTION * bounced_share
             sky_fraction = mi.Float(0.0)
             if dr.hint(sky_guided, mode="scalar"):
@@ -776,7 +780,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
             light_total = mi.Float(0.0)
             light_fraction = mi.Float(0.0)
             if dr.hint(lit, mode="scalar"):
-                light_total = self._view.index.lights.total_weight(si.p, n, traced_here & active_next)
+                lit_here = traced_here & active_next
+                light_total = only_where(lit_here, lambda: self._view.index.lights.total_weight(si.p, n, lit_here),
+                                         lambda: dr.zeros(mi.Float, dr.width(si.p)), label="record_lights")
                 light_fraction = dr.select(light_total > 0, LIGHT_FRACTION, 0.0)
 
             # Final gather: a trusted vertex reads all of its light from the cache (the
