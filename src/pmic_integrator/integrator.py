@@ -477,6 +477,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
         def zeros():
             zero = dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes), dr.zeros(mi.Float, lanes)
             return zero + (dr.zeros(mi.Color3f, lanes),) if with_direct else zero
+        if not self.settings.final_gather_camera:
+            # (The first-hit estimator reads it at nearly every first vertex.)
+            return index.interpolate(p, n, active, with_radius=True, shading_n=shading_n,
+                                     with_direct=with_direct)
         # (Behind a traced vertex only: at the camera's first vertex no lane reads it.)
         return only_where(active, lambda: index.interpolate(p, n, active, with_radius=True,
                                                             shading_n=shading_n,
