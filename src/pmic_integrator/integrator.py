@@ -104,6 +104,12 @@ CAUSTIC_SHARE_COSINE = 0.98
 COAT_ROULETTE_BELOW = 0.5
 
 
+def _no_light(si):
+    """The ``zeros`` of :func:`~pmic_integrator._jit.only_where` for a light estimate at
+    ``si``'s lanes (with or without the sampler)."""
+    return lambda *sampler: dr.zeros(mi.Spectrum, dr.width(si.p))
+
+
 def _finite(value, active=True):
     """``value`` where ``active`` and every channel is finite, else 0: a NaN or Inf from
     one emitter, texel or sample must cost that sample only."""
@@ -471,12 +477,12 @@ class PMICIntegrator(mi.SamplingIntegrator):
         ``with_direct``, and the part of E that is the records' direct light."""
         index = self._view.index
         lanes = dr.width(p)
-        if index is None:
-            zero = dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes), dr.zeros(mi.Float, lanes)
-            return zero + (dr.zeros(mi.Color3f, lanes),) if with_direct else zero
+
         def zeros():
             zero = dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Bool, lanes), dr.zeros(mi.Float, lanes)
             return zero + (dr.zeros(mi.Color3f, lanes),) if with_direct else zero
+        if index is None:
+            return zeros()
         if not self.settings.final_gather_camera:
             # (The first-hit estimator reads it at nearly every first vertex.)
             return index.interpolate(p, n, active, with_radius=True, shading_n=shading_n,
@@ -766,12 +772,12 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
             # Guiding: where a record reaches a traced vertex, part of its continuation
             # follows the record's distribution of gathered light (GUIDE_FRACTION).
+            traced_on = traced_here & active_next  #: traced, and the path goes on
             guide_record = mi.UInt32(0)
             guide_fraction = mi.Float(0.0)
             if dr.hint(guiding, mode="scalar"):
-                guided_here = traced_here & active_next
                 guide_record, bounced_share = only_where(
-                    guided_here, lambda: self._view.index.guide_record(si.p, n, guided_here),
+                    traced_on, lambda: self._view.index.guide_record(si.p, n, traced_on),
                     lambda: (dr.zeros(mi.UInt32, dr.width(si.p)), dr.zeros(mi.Float, dr.width(si.p))),
                     label="guide_record")
                 guide_fraction = GUIDE_FRACTION * bounced_share
@@ -784,8 +790,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             light_total = mi.Float(0.0)
             light_fraction = mi.Float(0.0)
             if dr.hint(lit, mode="scalar"):
-                lit_here = traced_here & active_next
-                light_total = only_where(lit_here, lambda: self._view.index.lights.total_weight(si.p, n, lit_here),
+                light_total = only_where(traced_on, lambda: self._view.index.lights.total_weight(si.p, n, traced_on),
                                          lambda: dr.zeros(mi.Float, dr.width(si.p)), label="record_lights")
                 light_fraction = dr.select(light_total > 0, LIGHT_FRACTION, 0.0)
 
@@ -1107,8 +1112,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                        prev_sky_record, prev_sky_fraction)
             mis = dr.select(prev_bsdf_delta, 1.0, mis_weight(prev_bsdf_pdf, float(self.settings.direct_samples) * em_pdf))
             return _finite(β * mis * ds.emitter.eval(si, shown), shown)
-        return only_where(shown, compute, lambda: dr.zeros(mi.Spectrum, dr.width(si.p)),
-                          label="emission")
+        return only_where(shown, compute, _no_light(si), label="emission")
 
     def _emitter_pdf(self, scene, ref, ds, normal, active, sky_record=None, sky_fraction=None):
         """Density of the emitter samples of :meth:`_direct_light` at ``ref`` (shading
@@ -1176,9 +1180,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             return _finite(em_weight * (f_diffuse * w_diffuse + f_rest * w_rest), ok)
 
         if self.settings.direct_samples == 1:
-            return only_where(active, lambda sampler: one_sample(sampler),
-                              lambda sampler: dr.zeros(mi.Spectrum, dr.width(si.p)), sampler,
-                              label="pmic_direct_light")
+            return only_where(active, one_sample, _no_light(si), sampler, label="pmic_direct_light")
 
         def body(k, total, sampler):
             return k + 1, total + one_sample(sampler, k), sampler
@@ -1205,8 +1207,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             ok = active & (bs.pdf > 0) & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             hit = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), ok)
             return _finite(weight * hit.emitter(scene, ok).eval(hit, ok), ok)
-        return only_where(active, compute, lambda sampler: dr.zeros(mi.Spectrum, dr.width(si.p)),
-                          sampler, label="coat_emission")
+        return only_where(active, compute, _no_light(si), sampler, label="coat_emission")
 
     def _mixed_continuation(self, si, n, bsdf, bs, weight, u2, active,
                             pick_guide, guide_record, guide_fraction,
@@ -1277,8 +1278,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             ok = mi.Bool(active) & (ds.pdf != 0.0)
             f = bsdf.eval(ctx_diffuse, si, si.to_local(ds.d), ok)
             return _finite(em_weight * f, ok)
-        return only_where(active, compute, lambda sampler: dr.zeros(mi.Spectrum, dr.width(si.p)),
-                          sampler, label="trusted_direct")
+        return only_where(active, compute, _no_light(si), sampler, label="trusted_direct")
 
     def _diffuse_emitter_hit(self, scene, sampler, si, normal, bsdf, active, ctx_diffuse, n_em):
         """Direct light on the diffuse lobe from one BSDF-sampled ray that meets an
@@ -1293,8 +1293,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
             em_pdf = self._emitter_pdf(scene, si, ds, normal, ok)
             emitted = ds.emitter.eval(hit, ok)
             return _finite(weight * emitted * mis_weight(bs.pdf, n_em * em_pdf), ok)
-        return only_where(active, compute, lambda sampler: dr.zeros(mi.Spectrum, dr.width(si.p)),
-                          sampler, label="diffuse_emitter_hit")
+        return only_where(active, compute, _no_light(si), sampler, label="diffuse_emitter_hit")
 
     def _final_gather_ray(self, scene, sampler, si, n, active):
         """One cosine-distributed gather ray reading precomputed irradiance: E ≈ π L."""

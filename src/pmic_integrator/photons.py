@@ -26,7 +26,8 @@ from dataclasses import dataclass, field, replace
 import drjit as dr
 import mitsuba as mi
 
-from ._jit import concat, opaque_float, opaque_u32, rng as make_rng, scatter_count, shading_normal_on_side
+from ._jit import (ONE_MINUS_EPSILON, concat, opaque_float, opaque_u32, rng as make_rng, scatter_count,
+                   shading_normal_on_side)
 from .bsdfs import dark_side, glossy_beside_diffuse, lobes_separable, sample_lobes_apart
 from .emission import choose_emitter, emission_bounds, sample_emitter_rays
 from .streams import photon_batch_seed
@@ -260,8 +261,8 @@ class EmissionGuide:
         cells = EMISSION_GUIDE_CELLS
         index, reused, pmf = distribution.sample_reuse_pmf(u.x)
         i, j = index % cells, index // cells
-        x = dr.minimum((mi.Float(i) + reused) / cells, ONE_BELOW)
-        y = dr.minimum((mi.Float(j) + u.y) / cells, ONE_BELOW)
+        x = dr.minimum((mi.Float(i) + reused) / cells, ONE_MINUS_EPSILON)
+        y = dr.minimum((mi.Float(j) + u.y) / cells, ONE_MINUS_EPSILON)
         return mi.Point2f(x, y), pmf * (cells * cells)
 
     def warp(self, u_origin: mi.Point2f, u_direction: mi.Point2f):
@@ -269,10 +270,6 @@ class EmissionGuide:
         origin, p_origin = self._warp(self.origin, u_origin)
         direction, p_direction = self._warp(self.direction, u_direction)
         return origin, direction, dr.rcp(dr.maximum(p_origin * p_direction, 1e-30))
-
-
-#: Largest float below one (a warped sample stays in [0, 1)).
-ONE_BELOW = 0.99999994
 
 
 def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
