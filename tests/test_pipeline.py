@@ -5,10 +5,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from pmic_integrator import gather, photons, pipeline, streams
+from pmic_integrator import cache, gather, photons, pipeline, streams
 from pmic_integrator.settings import Settings
 
-from scene_builders import SMALL_PMIC, cornell
+from scene_builders import SMALL_PMIC, cornell, courtyard
 
 
 def settings(**params):
@@ -120,10 +120,56 @@ def test_gather_search_steps_lose_no_photon():
     assert found.mean() > 0.8
     np.testing.assert_array_equal(np.array(fast[1]), found)
     np.testing.assert_array_equal(np.array(fast[0])[found], np.array(full[0])[found])
-    stepped = np.array(source.irradiance_at(scene, si, n, si.is_valid()))
+    stepped = np.array(source.irradiance_at(scene, si.p, n, si.is_valid()))
     wide = gather.GatherSource(source.photons, source.grid, source.radius)
-    single = np.array(wide.irradiance_at(scene, si, n, si.is_valid()))
+    single = np.array(wide.irradiance_at(scene, si.p, n, si.is_valid()))
     np.testing.assert_array_equal(stepped.sum(0) > 0, single.sum(0) > 0)
+
+
+def _rough_plastic(rgb):
+    return {"type": "roughplastic", "alpha": 0.3, "diffuse_reflectance": {"type": "rgb", "value": rgb}}
+
+
+@pytest.mark.parametrize("scene_dict", [
+    # caustic map from the coats, glossy bounces, near hits reading caustic irradiance
+    lambda: cornell(16, white=_rough_plastic([0.7, 0.7, 0.7]), red=_rough_plastic([0.6, 0.1, 0.1])),
+    # delta bounces through glass
+    lambda: cornell(16, glass={"type": "sphere", "center": [0.3, -0.6, 0.2], "radius": 0.35,
+                               "bsdf": {"type": "dielectric"}}),
+    # a sun: its direct light sampled at the hits, the photons' without it
+    lambda: courtyard((16, 12)),
+], ids=["coated box", "glass sphere", "sunlit courtyard"])
+def test_records_split_gather_equals_one_loop(scene_dict):
+    """gather_radiance (first vertex apart, its lookups answered together, the rest in
+    one loop) gives trace_gather_rays' radiance up to float rounding, the same
+    distances, and its compacted search the same photons' irradiance."""
+    scene = mi.load_dict(scene_dict())
+    prepared = pipeline.prepare(scene, settings(estimator="first_hit"))
+    source, records = prepared.gather_source, prepared.index.records
+    delta = source.photons.irradiance_nodelta is not None
+    assert delta == ("sun" in scene_dict())
+
+    def rays():
+        return cache._stratified_rays(records.position, records.normal, (8, 16), 7,
+                                      streams.RECORD_GATHER, prepared.ray_offset)
+
+    ray, *_, rng = rays()
+    assert dr.width(ray.o) >= gather.SPLIT_GATHER_MIN_RAYS
+    loop_radiance, loop_distance = gather.trace_gather_rays(scene, source, ray, rng, mi.Bool(True), delta)
+    ray, *_, rng = rays()
+    split_radiance, split_distance = gather.gather_radiance(scene, source, ray, rng, delta)
+    loop_radiance = np.array(loop_radiance)
+    assert loop_radiance.sum() > 0
+    np.testing.assert_array_equal(np.array(split_distance), np.array(loop_distance))
+    np.testing.assert_allclose(np.array(split_radiance), loop_radiance, rtol=1e-5, atol=1e-7)
+
+    si = scene.ray_intersect(ray)
+    hit = dr.compress(si.is_valid())
+    p = dr.gather(mi.Point3f, si.p, hit)
+    n = dr.gather(mi.Vector3f, mi.Vector3f(dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)), hit)
+    at = np.array(source.irradiance_at(scene, p, n, True, without_delta=delta))
+    assert (at.sum(0) > 0).mean() > 0.5
+    np.testing.assert_array_equal(np.array(source.irradiance_of(scene, p, n, without_delta=delta)), at)
 
 
 def test_render_rng_follows_the_sampler_seed():

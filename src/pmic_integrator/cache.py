@@ -25,7 +25,7 @@ import numpy as np
 
 from . import streams
 from . import skylight
-from .gather import GatherSource, stratified_directions, trace_gather_rays
+from .gather import GatherSource, gather_radiance, stratified_directions
 from ._jit import (concat, jittered, mean_value, opaque_float, opaque_u32, rng as make_rng,
                    scatter_min,
                    segment_blocked, shading_normal_on_side, surface_offset)
@@ -524,8 +524,8 @@ def _gather_rays(scene, source, p, n, strata, seed, offset, about=None,
     """Trace M·N stratified rays per point (about the normals ``about``, default
     ``n``); return per-ray data in [point][j][k] order."""
     ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, stream, offset, about)
-    radiance, distance = trace_gather_rays(scene, source, ray, rng, mi.Bool(True),
-                                           sample_delta=source.photons.irradiance_nodelta is not None)
+    radiance, distance = gather_radiance(scene, source, ray, rng,
+                                         sample_delta=source.photons.irradiance_nodelta is not None)
     dr.eval(radiance, distance)
     return owner, j, k, local, radiance, distance
 

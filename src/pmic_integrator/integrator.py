@@ -530,7 +530,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         # vertex samples it: _trusted_direct).
         nodelta = source.photons.irradiance_nodelta is not None
         # (Rare: a vertex no record reaches, past every probe.)
-        fallback = only_where(need, lambda: source.irradiance_at(scene, si, n, need, without_delta=nodelta),
+        fallback = only_where(need, lambda: source.irradiance_at(scene, si.p, n, need, without_delta=nodelta),
                               lambda: dr.zeros(mi.Color3f, dr.width(si.p)), label="photon_fallback")
         return dr.select(covered, cached, fallback)
 
