@@ -516,20 +516,23 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
     return walk.radiance, walk.distance
 
 
-@dr.syntax
 def _walk_on(scene: mi.Scene, source: GatherSource, walk: GatherWalk, sample_delta: bool) -> GatherWalk:
     """``walk`` to its end in one symbolic loop, each vertex's photon lookups answered
-    in place."""
+    in place. (``dr.while_loop`` with the state named: ``@dr.syntax`` traces a loop's
+    body twice to find its state, and this body holds five nested searches.)"""
     near_distance = opaque_float(source.near_hit_distance)
-    while dr.hint(walk.active, label="gather_ray", max_iterations=GATHER_VERTICES):
+
+    def vertex(walk):
         walk, asked = _gather_vertex(scene, source, walk, sample_delta, near_distance)
         irradiance = source.irradiance_at(scene, asked.p, asked.n, asked.mask,
                                           without_delta=sample_delta, caustic=asked.caustic)
-        walk.radiance += asked.reflected(irradiance)
-    return walk
+        walk.radiance = walk.radiance + asked.reflected(irradiance)
+        return (walk,)
+
+    return dr.while_loop((walk,), lambda walk: walk.active, vertex, label="gather_ray",
+                         max_iterations=GATHER_VERTICES)[0]
 
 
-@dr.syntax
 def _walk_on_deferred(scene: mi.Scene, source: GatherSource, walk: GatherWalk, sample_delta: bool,
                       near_distance: mi.Float):
     """``walk`` to its end in one symbolic loop, each vertex's photon lookups written
@@ -543,10 +546,15 @@ def _walk_on_deferred(scene: mi.Scene, source: GatherSource, walk: GatherWalk, s
                             dr.zeros(mi.Bool, slots))
     dr.make_opaque(deferred.mask, deferred.p, deferred.n, deferred.weight, deferred.caustic)
     first_slot = dr.arange(mi.UInt32, rays) * GATHER_VERTICES
-    while dr.hint(walk.active, label="gather_ray_deferred", max_iterations=GATHER_VERTICES):
+
+    def vertex(walk):
         slot = first_slot + dr.minimum(walk.bounce, GATHER_VERTICES - 1)
         walk, asked = _gather_vertex(scene, source, walk, sample_delta, near_distance)
         deferred.write(asked, slot)
+        return (walk,)
+
+    walk = dr.while_loop((walk,), lambda walk: walk.active, vertex, label="gather_ray_deferred",
+                         max_iterations=GATHER_VERTICES)[0]
     return walk, deferred
 
 
