@@ -600,7 +600,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         sky_guided = guiding and prepared.sky is not None and prepared.index.sky_guiding_pays()
         lit = gather_first and self.settings.guiding and prepared.index is not None and \
             prepared.index.lights is not None
-        n_em = float(self.settings.direct_samples)
+        n_em = self._emitter_samples
         aovs = self.settings.aov_list
         want_direct, want_indirect = "direct" in aovs, "indirect" in aovs
         want_caustic, want_coverage = "caustic" in aovs, "coverage" in aovs
@@ -1110,9 +1110,15 @@ class PMICIntegrator(mi.SamplingIntegrator):
             ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
             em_pdf = self._emitter_pdf(scene, prev_si, ds, prev_normal, shown & ~prev_bsdf_delta,
                                        prev_sky_record, prev_sky_fraction)
-            mis = dr.select(prev_bsdf_delta, 1.0, mis_weight(prev_bsdf_pdf, float(self.settings.direct_samples) * em_pdf))
+            mis = dr.select(prev_bsdf_delta, 1.0, mis_weight(prev_bsdf_pdf, self._emitter_samples * em_pdf))
             return _finite(β * mis * ds.emitter.eval(si, shown), shown)
         return only_where(shown, compute, _no_light(si), label="emission")
+
+    @property
+    def _emitter_samples(self) -> float:
+        """Emitter samples per vertex (``direct_samples``): the factor of their density
+        in every MIS weight against them."""
+        return float(self.settings.direct_samples)
 
     def _emitter_pdf(self, scene, ref, ds, normal, active, sky_record=None, sky_fraction=None):
         """Density of the emitter samples of :meth:`_direct_light` at ``ref`` (shading
@@ -1139,7 +1145,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         0, every other sample of the sky follows the sky ``guide_record`` saw
         (:data:`SKY_EMITTER_FRACTION`).
         """
-        n_em = float(self.settings.direct_samples)
+        n_em = self._emitter_samples
         index = self._view.index
         sky = self._view.sky
         guided = guide_fraction is not None  # given only where the index guides
