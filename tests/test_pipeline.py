@@ -172,6 +172,25 @@ def test_records_split_gather_equals_one_loop(scene_dict):
     np.testing.assert_array_equal(np.array(source.irradiance_of(scene, p, n, without_delta=delta)), at)
 
 
+def test_one_walk_gives_both_estimates_of_a_sunlit_scene():
+    """estimate_irradiance(nodelta_too=True): the whole estimate and the one without the
+    sun's direct photons from one walk, bit-identical to two walks."""
+    from pmic_integrator import irradiance
+
+    scene = mi.load_dict(courtyard((16, 12)))
+    prepared = pipeline.prepare(scene, settings())
+    half_a, half_b = prepared.global_map.split_by_path()
+    grid, order = irradiance.PointGridPyramid.build(half_b.position, prepared.global_radius, 32)
+    half_b = half_b.select(order)
+    args = (half_b, grid, half_a.position, half_a.normal)
+    whole = np.array(irradiance.estimate_irradiance(*args))
+    without = np.array(irradiance.estimate_irradiance(*args, without_delta_direct=True))
+    both = [np.array(x) for x in irradiance.estimate_irradiance(*args, nodelta_too=True)]
+    assert (whole.sum(0) > without.sum(0)).mean() > 0.3  # the sun's photons are apart
+    np.testing.assert_array_equal(both[0], whole)
+    np.testing.assert_array_equal(both[1], without)
+
+
 def test_render_rng_follows_the_sampler_seed():
     def numbers(seed):
         sampler = mi.load_dict({"type": "independent"})
