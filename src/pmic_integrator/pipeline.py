@@ -800,10 +800,13 @@ class CacheBuilder:
             was = dr.compress(shrunk < records.radius)
             old_reach = BallGrid.build(dr.gather(mi.Point3f, records.position, was),
                                        dr.gather(mi.Float, records.radius, was) * self.settings.max_error)
-            near = _inside_any(old_reach, photon_p)
+            near = dr.compress(_inside_any(old_reach, photon_p))
             records.radius = shrunk
             index = self.index(records)
-            lost = dr.compress(near & ~index.covered(photon_p, photon_n, near))
+            # (Tested on those photons only, gathered: masked, the test cost as much
+            # for every photon as for the few near ones.)
+            lost = dr.gather(mi.UInt32, near, dr.compress(~index.covered(
+                dr.gather(mi.Point3f, photon_p, near), dr.gather(mi.Vector3f, photon_n, near))))
             if not dr.width(lost):
                 break
             lost_p, lost_n = dr.gather(mi.Point3f, photon_p, lost), dr.gather(mi.Vector3f, photon_n, lost)
