@@ -345,21 +345,22 @@ class GatherLookup:
     n: mi.Vector3f
     weight: mi.Color3f
     caustic: mi.Bool | None = None
-    #: The ray each lookup belongs to (a gathered batch, :meth:`select`).
-    rays: mi.UInt32 | None = None
+    #: Where each lookup came from in the arrays it was gathered from (:meth:`select`):
+    #: the rays of a first vertex, the (ray, vertex) slots of the rest.
+    lanes: mi.UInt32 | None = None
 
     def reflected(self, irradiance: mi.Color3f) -> mi.Color3f:
         """What the lookup adds to the walk's radiance."""
         return _reflected(self.weight, irradiance, self.mask)
 
     def select(self, lanes: mi.UInt32) -> "GatherLookup":
-        """The lookups of ``lanes`` (all asked for: ``mask`` true), ``rays`` = ``lanes``."""
+        """The lookups of ``lanes`` (all asked for: ``mask`` true), kept as ``lanes``."""
         return GatherLookup(mask=dr.full(mi.Bool, True, dr.width(lanes)),
                             p=dr.gather(mi.Point3f, self.p, lanes),
                             n=dr.gather(mi.Vector3f, self.n, lanes),
                             weight=dr.gather(mi.Color3f, self.weight, lanes),
                             caustic=None if self.caustic is None else dr.gather(mi.Bool, self.caustic, lanes),
-                            rays=mi.UInt32(lanes))
+                            lanes=mi.UInt32(lanes))
 
     def write(self, asked: "GatherLookup", slot: mi.UInt32) -> None:
         """Store the lookups ``asked`` for at ``slot`` of these arrays (where asked)."""
@@ -583,15 +584,14 @@ def gather_radiance(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f, rng: m
     radiance = mi.Color3f(walk.radiance)
     first = asked.select(dr.compress(asked.mask))  # at most one per ray
     going = dr.compress(walk.active)
-    later, later_slots = None, None
+    later = None
     if dr.width(going):
         rest, deferred = _walk_on_deferred(scene, source, dr.gather(GatherWalk, walk, going),
                                            sample_delta, near_distance)
         dr.eval(rest.radiance, deferred.mask, deferred.p, deferred.n, deferred.weight, deferred.caustic)
         dr.scatter(radiance, rest.radiance, going)
-        later_slots = dr.compress(deferred.mask)
-        later = deferred.select(later_slots)
-    parts = [part for part in (first, later) if part is not None and dr.width(part.rays)]
+        later = deferred.select(dr.compress(deferred.mask))
+    parts = [part for part in (first, later) if part is not None and dr.width(part.lanes)]
     if not parts:
         return radiance, walk.distance
     caustic = None if asked.caustic is None else concat([part.caustic for part in parts], mi.Bool)
@@ -601,15 +601,15 @@ def gather_radiance(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f, rng: m
     dr.eval(irradiance)
     # The sums below add each ray's lookups in the order of its vertices, whatever the
     # order of the threads.
-    done = dr.width(first.rays)
+    done = dr.width(first.lanes)
     if done:
         dr.scatter_add(radiance, first.reflected(dr.gather(mi.Color3f, irradiance,
-                                                           dr.arange(mi.UInt32, done))), first.rays)
-    if later is not None and dr.width(later_slots):
-        count = dr.width(later_slots)
+                                                           dr.arange(mi.UInt32, done))), first.lanes)
+    if later is not None and dr.width(later.lanes):
+        count = dr.width(later.lanes)
         part = dr.gather(mi.Color3f, irradiance, dr.arange(mi.UInt32, count) + opaque_u32(done))
         by_slot = dr.zeros(mi.Color3f, dr.width(going) * GATHER_VERTICES)
-        dr.scatter(by_slot, later.reflected(part), later_slots)
+        dr.scatter(by_slot, later.reflected(part), later.lanes)
         dr.eval(by_slot)
         first_slot = dr.arange(mi.UInt32, dr.width(going)) * GATHER_VERTICES
         total = dr.zeros(mi.Color3f, dr.width(going))
