@@ -26,7 +26,8 @@ import numpy as np
 from . import streams
 from . import skylight
 from .gather import GatherSource, gather_radiance, stratified_directions
-from ._jit import (concat, jittered, mean_value, opaque_float, opaque_u32, rng as make_rng,
+from . import emission
+from ._jit import (ONE_MINUS_EPSILON, concat, jittered, mean_value, opaque_float, opaque_u32, rng as make_rng,
                    scatter_min,
                    segment_blocked, shading_normal_on_side, surface_offset)
 from .hashgrid import BallGrid, PointGrid
@@ -790,10 +791,34 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
     sampling, from jittered strata: :data:`RECORD_DIRECT_SAMPLES`), each non-finite
     sample counted as 0. The cosine is to
     ``shading_normal`` where given (as Mitsuba's BSDFs weigh light). With ``split``,
-    ``(from lights that are not delta, from delta lights)``: the same samples, each
-    counted in the part of the light it came from. With ``sky`` (a
+    ``(from lights that are not delta, from delta lights)``. With ``sky`` (a
     :class:`~pmic_integrator.skylight.SkySampler`), an environment is sampled by its
-    radiance times the cosine."""
+    radiance times the cosine.
+
+    In a scene with both kinds of light, the ``samples`` samples go to the lights
+    that are not delta lights, and each delta light (a sun, a spot) gets one sample of
+    its own (up to ``samples`` of them, in strata of the choice): one sample of a delta
+    light is exact up to visibility, and a choice among all lights spent half of a
+    sunlit sky's samples on the same shadow ray to the sun."""
+    kinds = [(delta, n) for delta, n in ((False, samples), (True, min(samples, len(emission.emitter_subset(scene, True)))))
+             if n and emission.emitter_subset(scene, delta)]
+    soft = delta = mi.Color3f(0.0)
+    for kind, count in kinds:
+        part = _direct_irradiance_of(scene, position, normal, count, seed, offset, shading_normal,
+                                     sky, kind)
+        if kind:
+            delta = part
+        else:
+            soft = part
+    if not split:
+        return soft + delta
+    return soft, delta
+
+
+def _direct_irradiance_of(scene, position, normal, samples: int, seed: int, offset: float,
+                          shading_normal, sky, delta: bool) -> mi.Color3f:
+    """:func:`direct_irradiance` from the delta lights only (``delta``) or from the
+    others only."""
     count = dr.width(position)
     lanes = count * samples
     owner = dr.arange(mi.UInt32, lanes) // opaque_u32(samples)
@@ -803,18 +828,18 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
     ref = dr.zeros(mi.Interaction3f, lanes)
     ref.p = p + n * surface_offset(p, offset)
     ref.n = n
-    rng = make_rng(lanes, seed, stream=streams.RECORD_DIRECT)
+    rng = make_rng(lanes, seed, stream=streams.RECORD_DIRECT_DELTA if delta else streams.RECORD_DIRECT)
     within = dr.arange(mi.UInt32, lanes) % opaque_u32(samples)  # sample number
-    u = jittered(mi.Point2f(rng.next_float32(), rng.next_float32()), within, samples)
-    ds, weight = skylight.sample_emitter_direction(scene, sky, ref, cos_n, u)
+    u = mi.Point2f(rng.next_float32(), rng.next_float32())
+    if delta:  # strata of the choice of light: with even weights, each light once
+        u.x = dr.minimum((mi.Float(within) + u.x) / samples, ONE_MINUS_EPSILON)
+        ds, weight = emission.sample_emitter_direction(scene, ref, u, True, delta=True)
+    else:
+        u = jittered(u, within, samples)
+        ds, weight = skylight.sample_emitter_direction(scene, sky, ref, cos_n, u, delta=False)
     e = weight * dr.maximum(dr.dot(ds.d, cos_n), 0.0)
     e = dr.select((ds.pdf > 0) & dr.all(dr.isfinite(e)), e, 0.0)
-    if not split:
-        return mi.Color3f(block_sum(mi.Color3f(e), samples)) / samples
-    soft = dr.select(ds.delta, 0.0, e)
-    delta = dr.select(ds.delta, e, 0.0)
-    return (mi.Color3f(block_sum(mi.Color3f(soft), samples)) / samples,
-            mi.Color3f(block_sum(mi.Color3f(delta), samples)) / samples)
+    return mi.Color3f(block_sum(mi.Color3f(e), samples)) / samples
 
 
 # --------------------------------------------------------------------------------------

@@ -32,6 +32,7 @@ import mitsuba as mi
 import numpy as np
 
 __all__ = ["sample_emitter_rays", "sample_emitter_direction", "choose_emitter", "emitter_order", "emitter_pmf",
+           "emitter_subset", "soft_pdf_scale", "is_delta",
            "emission_sphere", "emission_bounds", "scene_bbox"]
 
 #: The rectangle that infinite emitters shoot from is widened by this fraction of the
@@ -130,17 +131,16 @@ def is_delta(emitter) -> bool:
     return mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
 
 
-def choose_emitter(scene: mi.Scene, sample, active=True, delta: bool = False):
+def choose_emitter(scene: mi.Scene, sample, active=True, delta: bool | None = None):
     """``scene.sample_emitter`` over the emitters in :func:`emitter_order`: Mitsuba's
-    rule (uniform, or by ``sampling_weight``); with ``delta``, over the delta lights
-    only (:func:`is_delta`; there must be one). Returns ``(index into
-    scene.emitters(), 1/pmf, the sample reused)``. With one emitter, ``sample`` is
-    returned as it is (as Mitsuba does)."""
+    rule (uniform, or by ``sampling_weight``); with ``delta`` True, over the delta
+    lights only (:func:`is_delta`), with ``delta`` False over the others only (there
+    must be one such light). Returns ``(index into scene.emitters(), 1/pmf, the sample
+    reused)``. With one emitter to choose from, ``sample`` is returned as it is (as
+    Mitsuba does)."""
     sample = mi.Float(sample)
     active = mi.Bool(active)
-    order = emitter_order(scene)
-    if delta:
-        order = [i for i in order if is_delta(scene.emitters()[i])]
+    order = emitter_subset(scene, delta)
     count = len(order)
     if count == 1:
         return dr.full(mi.UInt32, order[0], dr.width(sample)), dr.ones(mi.Float, dr.width(sample)), sample
@@ -155,6 +155,15 @@ def choose_emitter(scene: mi.Scene, sample, active=True, delta: bool = False):
     return dr.gather(mi.UInt32, mi.UInt32(order), pick), weight, sample
 
 
+def emitter_subset(scene: mi.Scene, delta: bool | None = None) -> list[int]:
+    """The emitters of :func:`emitter_order` that :func:`choose_emitter` chooses from:
+    all (``delta`` None), the delta lights (True) or the others (False)."""
+    order = emitter_order(scene)
+    if delta is None:
+        return order
+    return [i for i in order if is_delta(scene.emitters()[i]) == delta]
+
+
 def _choice_weights(scene: mi.Scene, order: list[int]) -> list[float] | None:
     """The ``sampling_weight`` of each emitter in ``order``, or None where Mitsuba's
     rule chooses uniformly (all equal, or none positive)."""
@@ -162,22 +171,39 @@ def _choice_weights(scene: mi.Scene, order: list[int]) -> list[float] | None:
     return None if min(weights) == max(weights) or sum(weights) <= 0 else weights
 
 
-def emitter_pmf(scene: mi.Scene, index: int) -> float:
-    """Probability that :func:`choose_emitter` (without ``delta``) picks emitter
-    ``index`` of ``scene.emitters()``."""
-    order = list(range(len(scene.emitters())))
+def emitter_pmf(scene: mi.Scene, index: int, delta: bool | None = None) -> float:
+    """Probability that :func:`choose_emitter` (with ``delta``) picks emitter ``index``
+    of ``scene.emitters()`` (0 if it is not of that kind)."""
+    order = emitter_subset(scene, delta)
+    if index not in order:
+        return 0.0
     weights = _choice_weights(scene, order)
-    return 1.0 / len(order) if weights is None else weights[index] / sum(weights)
+    return 1.0 / len(order) if weights is None else weights[order.index(index)] / sum(weights)
+
+
+def soft_pdf_scale(scene: mi.Scene) -> float:
+    """The factor from ``scene.pdf_emitter_direction`` (an emitter chosen among all)
+    to the density of a sample whose emitter is chosen among the lights that are not
+    delta lights (``choose_emitter(delta=False)``), for an emitter of that kind: the
+    same for all of them (Mitsuba's pmf is each one's share of the weights). 1 in a
+    scene without delta lights, or without other lights."""
+    soft = emitter_subset(scene, False)
+    if not soft or len(soft) == len(scene.emitters()):
+        return 1.0
+    everywhere = emitter_pmf(scene, soft[0])
+    return emitter_pmf(scene, soft[0], False) / everywhere if everywhere > 0 else 1.0
 
 
 def sample_emitter_direction(scene: mi.Scene, ref, sample: mi.Point2f, test_visibility: bool,
-                             active=True, delta: bool = False):
+                             active=True, delta: bool | None = None):
     """``scene.sample_emitter_direction`` with the emitter chosen by
     :func:`choose_emitter` (what Mitsuba's does, step for step: the emitter's own
     ``sample_direction``, its pmf folded into the density and the weight, a shadow ray
     to the sampled point), so that the same seed gives the same samples whatever order
     Mitsuba loaded the lights in. ``scene.pdf_emitter_direction`` stays its density.
-    With ``delta``, only the delta lights are sampled (the scene must have one)."""
+    With ``delta`` True, only the delta lights are sampled, with False only the others
+    (the scene must have one such light): ``ds.pdf`` and the weight then hold the pmf
+    of that choice."""
     active = mi.Bool(active)
     lanes = dr.width(ref.p)
     if not scene.emitters():
@@ -186,7 +212,7 @@ def sample_emitter_direction(scene: mi.Scene, ref, sample: mi.Point2f, test_visi
     index, weight, sample.x = choose_emitter(scene, sample.x, active, delta)
     emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, active)
     ds, spectrum = emitter.sample_direction(ref, sample, active)
-    if len(scene.emitters()) > 1:
+    if len(emitter_subset(scene, delta)) > 1:
         ds.pdf *= dr.rcp(weight)
         spectrum *= weight
     active &= ds.pdf != 0.0

@@ -17,6 +17,7 @@ from ._jit import (ONE_MINUS_EPSILON, jittered, only_where, opaque_u32, shading_
                    surface_offset)
 from .bsdfs import (diffuse_context, diffuse_response, glossy_beside_diffuse, lobes_separable,
                     near_diffuse, non_diffuse_context, peak_within)
+from . import emission
 from .emission import sample_emitter_direction
 from . import skylight
 from .gather import trace_gather_rays
@@ -1126,12 +1127,18 @@ class PMICIntegrator(mi.SamplingIntegrator):
         for the emitter direction ``ds`` (MIS)."""
         guide = None if sky_fraction is None else \
             skylight.SkyGuide(self._view.index, sky_record, sky_fraction)
-        return skylight.pdf_emitter_direction(scene, self._view.sky, ref, ds, normal, active, guide)
+        return skylight.pdf_emitter_direction(scene, self._view.sky, ref, ds, normal, active, guide,
+                                              delta=False)
 
     def _direct_light(self, scene, sampler, si, normal, bsdf, active, separable, traced, armed,
                       no_diffuse, diffuse_mis, ctx_all, ctx_diffuse, ctx_rest,
                       guide_record=None, guide_fraction=None, sky_fraction=None):
-        """Mean of ``direct_samples`` emitter samples (shadow rays) at ``si``.
+        """Direct light at ``si``: the mean of ``direct_samples`` emitter samples (shadow
+        rays) of the lights that are not delta lights, plus one sample of each delta
+        light (a sun, a spot: exact up to visibility; up to ``direct_samples`` of them,
+        in strata of the choice). Chosen among all lights, half of a sunlit sky's
+        samples went to the sun, each the same shadow ray, and the sun's light at a
+        point came from 0 to 4 of them: the noise left in a sunlit courtyard.
 
         Separable BSDFs: the diffuse lobe takes emitter samples alone (or shares them by
         MIS with :meth:`_diffuse_emitter_hit`), the other lobes share them with the
@@ -1153,14 +1160,22 @@ class PMICIntegrator(mi.SamplingIntegrator):
         sky_guide = None if sky_fraction is None else \
             skylight.SkyGuide(index, guide_record, sky_fraction)
 
-        def one_sample(sampler, k=0):
-            # Sample k of direct_samples, in its own jittered stratum of the square.
-            u = jittered(sampler.next_2d(), mi.UInt32(k), self.settings.direct_samples)
-            # (The strategy is chosen from u itself, as the rest of the mixture is:
-            # choosing it by sample number, every other one, gave each strategy only
-            # its samples' strata of the square: 11 % dark in a window-lit room.)
-            ds, em_weight = skylight.sample_emitter_direction(scene, sky, si, normal, u, active,
-                                                              sky_guide)
+        soft_samples = self.settings.direct_samples if emission.emitter_subset(scene, False) else 0
+        delta_samples = min(self.settings.direct_samples, len(emission.emitter_subset(scene, True)))
+
+        def one_sample(sampler, k=0, delta=False):
+            if delta:  # sample k of the delta lights, in its own stratum of the choice
+                u = sampler.next_2d()
+                u.x = dr.minimum((mi.Float(k) + u.x) / delta_samples, ONE_MINUS_EPSILON)
+                ds, em_weight = emission.sample_emitter_direction(scene, si, u, True, active, delta=True)
+            else:
+                # Sample k of direct_samples, in its own jittered stratum of the square.
+                u = jittered(sampler.next_2d(), mi.UInt32(k), self.settings.direct_samples)
+                # (The strategy is chosen from u itself, as the rest of the mixture is:
+                # choosing it by sample number, every other one, gave each strategy only
+                # its samples' strata of the square: 11 % dark in a window-lit room.)
+                ds, em_weight = skylight.sample_emitter_direction(scene, sky, si, normal, u, active,
+                                                                  sky_guide, delta=False)
             ok = active & (ds.pdf != 0.0)
             wo = si.to_local(ds.d)
             # A traced vertex weighs both parts alike (the continuation samples the
@@ -1185,17 +1200,22 @@ class PMICIntegrator(mi.SamplingIntegrator):
                                   mis_weight(em_pdf, pdf_diffuse))
             return _finite(em_weight * (f_diffuse * w_diffuse + f_rest * w_rest), ok)
 
-        if self.settings.direct_samples == 1:
-            return only_where(active, one_sample, _no_light(si), sampler, label="pmic_direct_light")
+        def mean(count, delta):
+            if count == 0:
+                return mi.Spectrum(0.0)
+            if count == 1:
+                return only_where(active, lambda sampler: one_sample(sampler, 0, delta), _no_light(si),
+                                  sampler, label="pmic_direct_light")
 
-        def body(k, total, sampler):
-            return k + 1, total + one_sample(sampler, k), sampler
+            def body(k, total, sampler):
+                return k + 1, total + one_sample(sampler, k, delta), sampler
 
-        _, total, sampler = dr.while_loop(
-            (dr.zeros(mi.UInt32, dr.width(si.p)), dr.zeros(mi.Spectrum, dr.width(si.p)), sampler),
-            lambda k, total, sampler: active & (k < self.settings.direct_samples), body,
-            label="pmic_direct_light")
-        return total / n_em
+            _, total, _ = dr.while_loop(
+                (dr.zeros(mi.UInt32, dr.width(si.p)), dr.zeros(mi.Spectrum, dr.width(si.p)), sampler),
+                lambda k, total, sampler: active & (k < count), body, label="pmic_direct_light")
+            return total / count
+
+        return mean(soft_samples, False) + mean(delta_samples, True)
 
     @staticmethod
     def _coat_emission(scene, sampler, si, bsdf, active, ctx_rest):

@@ -336,11 +336,17 @@ def _is_sky(sky: SkySampler, emitter) -> mi.Bool:
     return emitter == mi.EmitterPtr(sky.emitter)
 
 
-def _mixture_pdf(sky: SkySampler, table_pdf, env_pdf):
-    """Density of a sky sample (emitter choice included), given the tables' density
-    ``table_pdf`` and the emitter's own ``env_pdf`` (emitter choice included)."""
+def _mixture_pdf(sky: SkySampler, pmf: float, table_pdf, env_pdf):
+    """Density of a sky sample (emitter choice included: ``pmf``), given the tables'
+    density ``table_pdf`` and the emitter's own ``env_pdf`` (emitter choice included)."""
     fraction = sky.product_fraction
-    return fraction * sky.pmf * table_pdf + (1.0 - fraction) * env_pdf
+    return fraction * pmf * table_pdf + (1.0 - fraction) * env_pdf
+
+
+def _sky_pmf(scene: mi.Scene, sky: SkySampler, delta: bool | None) -> float:
+    """Probability that an emitter sample picks the sky: among all lights (``delta``
+    None) or among the lights that are not delta lights (False)."""
+    return sky.pmf if delta is None else sky.pmf * emission.soft_pdf_scale(scene)
 
 
 @dataclass
@@ -360,7 +366,8 @@ class SkyGuide:
 
 
 def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, normal: mi.Vector3f,
-                             sample: mi.Point2f, active=True, guide: SkyGuide | None = None):
+                             sample: mi.Point2f, active=True, guide: SkyGuide | None = None,
+                             delta: bool | None = None):
     """:func:`pmic_integrator.emission.sample_emitter_direction` (with a shadow ray),
     except that the sky is sampled by the mixture of the module's docstring about the
     surface normal ``normal`` (world space, on the side the light arrives from), and,
@@ -369,12 +376,16 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
     that jittered strata stay unbiased; lanes whose fraction is 0 draw exactly what
     they drew without a guide).
     ``ds.pdf`` is the density of the whole strategy (emitter choice included), as
-    :func:`pdf_emitter_direction` gives it for a direction met by other means."""
+    :func:`pdf_emitter_direction` gives it for a direction met by other means.
+    ``delta``: the emitters chosen from, as in
+    :func:`pmic_integrator.emission.choose_emitter` (False: all but the delta lights,
+    which are then sampled apart)."""
     if sky is None:
-        return emission.sample_emitter_direction(scene, ref, sample, True, active)
+        return emission.sample_emitter_direction(scene, ref, sample, True, active, delta)
     active = mi.Bool(active)
     sample = mi.Point2f(sample)
-    index, weight, sample.x = choose_emitter(scene, sample.x, active)
+    pmf = _sky_pmf(scene, sky, delta)
+    index, weight, sample.x = choose_emitter(scene, sample.x, active, delta)
     is_sky = active & (index == sky.emitter_index)
     guided = mi.Bool(False)
     if guide is not None:
@@ -390,7 +401,7 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
     own = active & ~product & ~guided
     emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, own)
     ds, spectrum = emitter.sample_direction(ref, sample, own)
-    if len(scene.emitters()) > 1:
+    if len(emission.emitter_subset(scene, delta)) > 1:
         ds.pdf *= dr.rcp(weight)
         spectrum *= weight
     # Sky lanes: the direction drawn from the tables where ``product``, the radiance
@@ -409,12 +420,12 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
     si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ds.d))
     si.wi = -ds.d
     radiance = sky.emitter.eval(si, is_sky)
-    env_pdf = dr.select(mine, sky.pmf * sky.emitter.pdf_direction(ref, ds, mine), ds.pdf)
+    env_pdf = dr.select(mine, pmf * sky.emitter.pdf_direction(ref, ds, mine), ds.pdf)
     table_pdf = dr.select(product & ~guided, sampled_table_pdf,
                           sky.pdf(normal, ds.d, is_sky & ~(product & ~guided)))
-    pdf = _mixture_pdf(sky, table_pdf, env_pdf)
+    pdf = _mixture_pdf(sky, pmf, table_pdf, env_pdf)
     if guide is not None:
-        pdf = guide.mix(pdf, sky.pmf, ds.d, is_sky)
+        pdf = guide.mix(pdf, pmf, ds.d, is_sky)
     ds.pdf = dr.select(is_sky, pdf, ds.pdf)
     spectrum = dr.select(is_sky, radiance * dr.rcp(dr.maximum(pdf, 1e-30)), spectrum)
     ok = active & (ds.pdf != 0.0)
@@ -424,16 +435,20 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
 
 
 def pdf_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, ds: mi.DirectionSample3f,
-                          normal: mi.Vector3f, active=True, guide: SkyGuide | None = None) -> mi.Float:
-    """Density with which :func:`sample_emitter_direction` about ``normal`` (and with
-    ``guide``) draws the emitter direction ``ds`` (``scene.pdf_emitter_direction``
-    without a sky)."""
+                          normal: mi.Vector3f, active=True, guide: SkyGuide | None = None,
+                          delta: bool | None = None) -> mi.Float:
+    """Density with which :func:`sample_emitter_direction` about ``normal`` (with
+    ``guide`` and ``delta``) draws the direction ``ds`` of an emitter that is not a
+    delta light (``scene.pdf_emitter_direction`` without a sky and ``delta``)."""
     pdf = scene.pdf_emitter_direction(ref, ds, active)
+    if delta is False:
+        pdf *= emission.soft_pdf_scale(scene)
     if sky is None:
         return pdf
+    pmf = _sky_pmf(scene, sky, delta)
     is_sky = mi.Bool(active) & _is_sky(sky, ds.emitter)
-    mixture = _mixture_pdf(sky, sky.pdf(normal, ds.d, is_sky), pdf)
+    mixture = _mixture_pdf(sky, pmf, sky.pdf(normal, ds.d, is_sky), pdf)
     if guide is not None:
-        mixture = guide.mix(mixture, sky.pmf, ds.d, is_sky)
+        mixture = guide.mix(mixture, pmf, ds.d, is_sky)
     return dr.select(is_sky, mixture, pdf)
 

@@ -30,6 +30,7 @@ def photon_batch_seed(seed: int, batch: int, caustic: bool) -> int:
 RECORD_GATHER = 1  #: a record's stratified gather rays (and glossy bounces along them)
 PILOT_DISTANCE = 2  #: pilot rays measuring a candidate's harmonic mean distance
 RECORD_DIRECT = 11  #: emitter samples of a record's direct irradiance
+RECORD_DIRECT_DELTA = 12  #: ...and its samples of the delta lights (a sun, a spot)
 RECORD_GATHER_REST = 13  #: the rest of a record's gather rays (pipeline.FIRST_GATHER_SHARE)
 CAMERA_POINTS = 101  #: ``irradiance_cache`` only: the camera rays that seed its records
 SURFACE_PROBES = 103  #: the view-independent probes sampled on every surface by area
