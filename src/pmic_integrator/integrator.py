@@ -250,10 +250,13 @@ class PMICIntegrator(mi.SamplingIntegrator):
        * - ``direct_samples``
          - integer
          - 4
-         - Emitter samples (shadow rays) per camera vertex (1-64): shadow rays cost far less
-           than camera samples (which also interpolate the cache), and direct light is
-           most of the noise left. They are drawn from jittered strata of the sample
-           square (the light chosen, and its directions, stratified). An environment
+         - Emitter samples (shadow rays) per camera vertex (1-64) of the lights that are
+           not delta lights: shadow rays cost far less than camera samples (which also
+           interpolate the cache), and direct light is most of the noise left. They are
+           drawn from jittered strata of the sample square (the light chosen, and its
+           directions, stratified). Delta lights (``point``, ``spot``,
+           ``directional``) take one sample each on top (up to ``direct_samples`` of
+           them, in strata of the choice): one is exact up to visibility. An environment
            (``envmap``, ``constant``) is sampled by its radiance times the cosine
            (:mod:`pmic_integrator.skylight`).
        * - ``seed``
