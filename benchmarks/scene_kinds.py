@@ -8,6 +8,7 @@ in its window (all of its light caustic).
 
     python benchmarks/scene_kinds.py                     # 320×240, pmic 16 spp, ~8 minutes
     python benchmarks/scene_kinds.py --scenes courtyard_sun --resolution 160
+    python benchmarks/scene_kinds.py --rounds 5 --path-spp 64   # alternating rounds
 
 As ``../shared/scenes/compare_with_path.py`` does it: pmic at its defaults and ``--spp``
 samples per pixel, timed after a warm-up with another seed (every stage included);
@@ -16,7 +17,8 @@ fastest of two runs; both scored by
 relMSE against a ``path`` reference of ``--ref-spp`` samples (computed once, kept in
 ``~/.cache/pmic-benchmarks``; its own noise is in both errors). Speed-up = how much
 sooner pmic reaches its error than ``path`` would, with path's relMSE falling as 1/t.
-Writes ``benchmarks/results/scene_kinds_<res>.{json,md}``.
+Writes ``benchmarks/results/scene_kinds_<res>.{json,md}`` (with ``--rounds``:
+``scene_kinds_<res>_rounds``, see :func:`measure_rounds`).
 """
 from __future__ import annotations
 
@@ -94,14 +96,55 @@ def render(scene, integrator, spp, seed):
     return image, time.perf_counter() - start
 
 
-def measure(name, size, spp, ref_spp):
-    scene = mi.load_dict(scene_dict(name, size))
+def reference(name, size, ref_spp, scene):
+    """The scene's ``path`` reference of ``ref_spp`` samples, computed once and kept."""
     CACHE.mkdir(parents=True, exist_ok=True)
     ref_file = CACHE / f"{name}_{size[0]}x{size[1]}_{ref_spp}_gaussian.npy"
     if not ref_file.exists():
         np.save(ref_file, np.array(mi.render(scene, integrator=mi.load_dict({"type": "path"}),
                                              spp=ref_spp, seed=1_000_000), dtype=np.float32))
-    ref = np.load(ref_file).astype(np.float64)
+    return np.load(ref_file).astype(np.float64)
+
+
+def measure_rounds(name, size, spp, ref_spp, rounds, path_spp):
+    """pmic (``spp``) and ``path`` (``path_spp``) rendered alternately, ``rounds`` times
+    each, every round with other seeds (pmic's scene seed and render seed; path's render
+    seed): the median time and the mean relMSE of each. Steadier than one equal-time
+    run where the two are close: the machine's speed drifts between two runs by more
+    than they differ, and one run's relMSE is one draw. Speed-up as :func:`measure`'s
+    (path's relMSE falling as 1/t)."""
+    scene = mi.load_dict(scene_dict(name, size))
+    ref = reference(name, size, ref_spp, scene)
+    render(scene, mi.load_dict({"type": "pmic", "seed": 1000}), spp, 1000)  # warm-ups
+    path = mi.load_dict({"type": "path"})
+    render(scene, path, 8, 1000)
+    pmic_runs, path_runs = [], []
+    for r in range(rounds):
+        pmic = mi.load_dict({"type": "pmic", "seed": r})
+        img, t = render(scene, pmic, spp, r)
+        pmic_runs.append((t, relmse(img, ref), float(img.mean() / ref.mean()), pmic.stats))
+        pimg, t = render(scene, path, path_spp, 100 + r)
+        path_runs.append((t, relmse(pimg, ref)))
+    t_pmic = float(np.median([x[0] for x in pmic_runs]))
+    t_path = float(np.median([x[0] for x in path_runs]))
+    e_pmic = float(np.mean([x[1] for x in pmic_runs]))
+    e_path = float(np.mean([x[1] for x in path_runs]))
+    stats = min(pmic_runs, key=lambda x: x[0])[3]
+    return {"scene": name, "resolution": list(size), "pmic_spp": spp, "pmic_s": t_pmic,
+            "pmic_relmse": e_pmic, "pmic_relmse_sd": float(np.std([x[1] for x in pmic_runs])),
+            "pmic_luminance_ratio": float(np.mean([x[2] for x in pmic_runs])),
+            "pmic_stages": {k: stats[k] for k in ("time_photons", "time_precompute", "time_cache",
+                                                   "time_render")},
+            "photons_caustic": stats["photons_caustic"], "records": stats["records"],
+            "path_spp": path_spp, "path_s": t_path, "path_relmse": e_path,
+            "path_relmse_sd": float(np.std([x[1] for x in path_runs])), "rounds": rounds,
+            "speedup": (e_path * t_path) / (e_pmic * t_pmic),
+            "finite": all(bool(np.isfinite(x[1])) for x in pmic_runs), "reference_spp": ref_spp}
+
+
+def measure(name, size, spp, ref_spp):
+    scene = mi.load_dict(scene_dict(name, size))
+    ref = reference(name, size, ref_spp, scene)
     render(scene, mi.load_dict({"type": "pmic", "seed": 1}), spp, 1)  # warm-up (compiles)
     # The fastest of REPEATS runs of each (a fresh pmic each time: every stage again;
     # the same seeds, so the same images): one run's time moved by ±30 %.
@@ -134,22 +177,31 @@ def main(argv=None):
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--ref-spp", type=int, default=2048)
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--rounds", type=int, default=0,
+                        help="instead of one equal-time run: this many alternating rounds of "
+                             "pmic and path (path at --path-spp), other seeds each round")
+    parser.add_argument("--path-spp", type=int, default=64, help="path's spp with --rounds")
     args = parser.parse_args(argv)
+    if args.rounds < 0 or args.path_spp < 1 or args.spp < 1:
+        parser.error("--rounds must be >= 0, --spp and --path-spp >= 1")
     mi.set_variant("llvm_ad_rgb")
     size = (args.resolution, args.resolution * 3 // 4)
     rows = []
     for name in args.scenes:
-        row = measure(name, size, args.spp, args.ref_spp)
+        row = measure_rounds(name, size, args.spp, args.ref_spp, args.rounds, args.path_spp) \
+            if args.rounds else measure(name, size, args.spp, args.ref_spp)
         rows.append(row)
         print(f"{name:20s} pmic {row['pmic_s']:.2f} s relMSE {row['pmic_relmse']:.2e} "
               f"lum {row['pmic_luminance_ratio']:.4f} | path {row['path_spp']} spp {row['path_s']:.2f} s "
               f"relMSE {row['path_relmse']:.2e} | speed-up {row['speedup']:.2f}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / f"scene_kinds_{size[0]}"
-    command = "python benchmarks/scene_kinds.py" + ("" if argv is None else " " + " ".join(argv))
+    stem = args.out / (f"scene_kinds_{size[0]}" + ("_rounds" if args.rounds else ""))
+    command = " ".join(["python benchmarks/scene_kinds.py", *(sys.argv[1:] if argv is None else argv)])
     stem.with_suffix(".json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
-    lines = [f"# pmic against path at equal time, scenes of the public checks' kinds, {size[0]}×{size[1]}",
-             "", f"`{command}` (pmic {args.spp} spp; reference: path {args.ref_spp} spp)", "",
+    how = (f"{args.rounds} alternating rounds, pmic {args.spp} spp and path {args.path_spp} spp; median "
+           f"time, mean relMSE" if args.rounds else f"pmic {args.spp} spp, path at equal time")
+    lines = [f"# pmic against path, scenes of the public checks' kinds, {size[0]}×{size[1]}",
+             "", f"`{command}` ({how}; reference: path {args.ref_spp} spp)", "",
              "| scene | pmic s | photons / precompute / cache / render s | pmic relMSE | luminance | "
              "path spp | path relMSE | speed-up |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
