@@ -335,6 +335,39 @@ def test_record_direct_light_samples_are_stratified():
     assert np.mean(errors) < 1.2e-3
 
 
+def test_records_direct_light_of_a_sky_follows_the_sky_their_gather_saw():
+    """A record's emitter samples of the sky follow, half of them, the sky its gather
+    saw (its ``sky_guide``): in a room lit through a window, drawn over the whole sky
+    they met the window a few times each, a skewed draw (the image moved by ±1 % from
+    one scene seed to the next). Against 4096 plain samples over 8 seeds: relative
+    error 0.30 against 0.66 (measured), both unbiased."""
+    from scene_builders import window_room
+    from pmic_integrator import pipeline
+    from pmic_integrator.settings import Settings
+
+    scene = mi.load_dict(window_room())
+    props = mi.Properties()
+    props["global_photons"] = 50_000
+    prepared = pipeline.prepare(scene, Settings.parse(props))
+    index, records = prepared.index, prepared.index.records
+    assert dr.count(index.sees_sky(dr.arange(mi.UInt32, records.count)))[0] > records.count // 2
+    args = (scene, records.position, records.normal)
+    kw = {"shading_normal": records.shading_normal, "sky": prepared.sky}
+    reference = np.array(cache.direct_irradiance(*args, 4096, 777, prepared.ray_offset, **kw)).mean(0)
+
+    def error_and_mean(guides):
+        runs = np.array([np.array(cache.direct_irradiance(*args, 64, seed, prepared.ray_offset,
+                                                          guides=guides, **kw)).mean(0)
+                         for seed in range(8)])
+        return np.mean((runs - reference) ** 2) / np.mean(reference ** 2), runs.mean() / reference.mean()
+
+    guided, guided_mean = error_and_mean(index)
+    plain, plain_mean = error_and_mean(None)
+    assert guided * 1.6 < plain
+    assert guided_mean == pytest.approx(1.0, abs=0.03)
+    assert plain_mean == pytest.approx(1.0, abs=0.03)
+
+
 def test_guides_hold_the_sky_seen_through_a_window_and_cut_its_noise(monkeypatch):
     """Gather rays that leave a room through its window put the sky's radiance into
     their record's guide (not its irradiance) and into a sky-only guide: camera paths

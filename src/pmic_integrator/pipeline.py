@@ -582,7 +582,7 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
         soft, delta = cache_mod.direct_irradiance(
             scene, index.records.position, index.records.normal, cache_mod.RECORD_DIRECT_SAMPLES,
             settings.seed, prepared.ray_offset, shading_normal=index.records.shading_normal,
-            split=True, sky=prepared.sky)
+            split=True, sky=prepared.sky, guides=index)
         if prepared.info.has_delta_emitter:
             index.direct, index.direct_all = soft, soft + delta
             dr.eval(index.direct_all)
