@@ -444,6 +444,23 @@ def test_records_reaching_across_a_thin_wall_are_not_read(monkeypatch):
     assert traced >= 3
 
 
+def test_a_record_reaching_just_past_a_wall_its_gather_met_late_is_tested(monkeypatch):
+    """The record 0.1 from the wall, whose gather met the wall at 0.11 (rays sample
+    directions: the nearest of them meets a wall at d at 1.03-1.16 d), reaching 0.105:
+    a point just across the wall is 0.103 away, within its reach and past 0.8 of the
+    nearest hit. Before, the reach had to pass the nearest hit itself for any test, so
+    the point went untested and read the lit side's record (a lit-side record's backup
+    reach lit the dark side of a 2 mm wall by 0.08, against a lit side of ~1.4)."""
+    index = _thin_wall_index()
+    index.records.radius = mi.Float(0.21)  # reach a·R = 0.105
+    index.records.obstacle = mi.Float(0.11)
+    index = RecordIndex.build(index.records, 0.5, index.scene, lift=1e-3)
+    index.direct = mi.Color3f(1.0)
+    e, covered, traced = _interpolate_counting_shadow_rays(index, [[0.003, 0.0, 0.0]], monkeypatch)
+    assert covered.tolist() == [False] and e[0] == 0.0
+    assert traced >= 1
+
+
 def test_a_record_tests_visibility_only_towards_what_its_gather_met(monkeypatch):
     """The record beside the thin wall with its gather's nearest hit per azimuth sector
     (cache.obstacle_sectors, from real rays): points away from the wall, farther than

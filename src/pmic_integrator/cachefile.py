@@ -70,7 +70,9 @@ FORMAT = "pmic-cache"
 #:     gather sources say whether some BSDF ignores lobe masks (SceneInfo.has_inseparable).
 #: 25: the global pass of a scene lit through openings guides its emission
 #:     (photons.EmissionGuide): other photons.
-VERSION = 25
+#: 26: grid pyramids keep an entry's level in three bits of its key (bits 29-31;
+#:     PointGridPyramid.LEVEL_SHIFT): keys stored by 25 would not be found.
+VERSION = 26
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

@@ -528,15 +528,28 @@ class PointGridPyramid:
     #: A query moves one level finer only when its disc would hold more than this many
     #: times ``per_estimate`` (each level quarters the count).
     DENSE_FACTOR = 2.0
+    #: Level bits of an entry's key (bits 29-31: up to 8 levels); the cell key keeps 29.
+    #: (Bits 30-31 held levels 0-3 only: the caustic map's six levels put levels 4
+    #: and 5 on 0 and 1's keys, so a scan could take a bucket-mate of another level's
+    #: cell for its own; the distance test then rejected its points, at a cost.)
+    LEVEL_SHIFT = 29
 
     @staticmethod
     def _bucket(cell: mi.Vector3i, level, mask):
         return (hash_cell(cell, 0xFFFFFFFF) ^ (mi.UInt32(level) * 0x9E3779B1)) & mask
 
     @staticmethod
+    def _key(cell: mi.Vector3i, level):
+        """An entry's key: the cell's (modulo 1024 on x and y, 512 on z: among the 27
+        cells of a scan all still differ) and the level in the top three bits."""
+        return (cell_key(cell) & 0x1FFFFFFF) | (mi.UInt32(level) << PointGridPyramid.LEVEL_SHIFT)
+
+    @staticmethod
     def build(positions: mi.Point3f, radius: float, per_estimate: float, levels: int | None = None):
         """Returns ``(pyramid, order)``; reorder the point data by ``order``."""
         levels = levels or PointGridPyramid.LEVELS
+        if levels > 8:
+            raise ValueError(f"PointGridPyramid: at most 8 levels, got {levels}")
         base = PointGrid.build(positions, radius)
         order = base.order
         n = base.count
@@ -555,7 +568,7 @@ class PointGridPyramid:
             inv = dr.opaque(mi.Float, (1 << level) / radius)
             cell = cell_of(sorted_p, base.origin, inv)
             buckets.append(PointGridPyramid._bucket(cell, opaque_u32(level), opaque_u32(table - 1)))
-            keys.append(cell_key(cell) | (opaque_u32(level) << 30))
+            keys.append(PointGridPyramid._key(cell, opaque_u32(level)))
         bucket = concat(buckets, mi.UInt32)
         key = concat(keys, mi.UInt32)
         cell_start, entry_order = _bucket_sort(bucket, table)
@@ -618,11 +631,10 @@ class PointGridPyramid:
         inv = dr.rcp(radius)
         center = cell_of(query, self.origin, inv)
         mask = dr.opaque(mi.UInt32, self.table_mask)
-        level_bits = level << 30
 
         def cell(j):
             visited = center + _neighbour_offset(j)
-            return self._bucket(visited, level, mask), cell_key(visited) | level_bits
+            return self._bucket(visited, level, mask), self._key(visited, level)
 
         # (Cells are one radius wide: the ball's squared radius is 1 cell².)
         return _walk(self.cell_start, self.keys, self.positions,
