@@ -71,7 +71,8 @@ FORMAT = "pmic-cache"
 #: 25: the global pass of a scene lit through openings guides its emission
 #:     (photons.EmissionGuide): other photons.
 #: 26: grid pyramids keep an entry's level in three bits of its key (bits 29-31;
-#:     PointGridPyramid.LEVEL_SHIFT): keys stored by 25 would not be found.
+#:     PointGridPyramid.LEVEL_SHIFT): keys stored by 25 would not be found; precomputed
+#:     irradiance is estimated from every path not precomputed (irradiance.precompute_irradiance).
 VERSION = 26
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).

@@ -277,25 +277,31 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
                           max_depth: int | None = None, caustics=None) -> PhotonMap:
     """Irradiance at photons (stage 2 of the paper), free of the self-term bias.
 
-    The photons of even light paths (half A; one in :func:`precompute_stride` of
-    their paths) get the irradiance estimated from the photons of odd paths (half B),
-    which are independent of them; A is returned with ``irradiance`` filled in, for
-    gather rays to read its nearest photon.
+    The photons of one in :func:`precompute_stride` of the even light paths (set A)
+    get the irradiance estimated from the photons of every other path (set B: the odd
+    paths, and at a stride above 1 the even ones not chosen too), which are
+    independent of them; A is returned with ``irradiance`` filled in, for gather rays
+    to read its nearest photon.
 
     Why not every photon estimated from the whole map, as Christensen (2000) does: a
     photon counting itself adds 3/(π r²) of its power, +3/k where k photons fall in
     the disc. That is small where photons are dense and huge where they are sparse
     (+55 % measured in a dim, indirectly lit room). Leaving the photon out is unbiased
     at the photon, but gather rays read the *nearest* photon, which picks photons with
-    large Voronoi cells, i.e. with few neighbours: 1-20 % dark. With two independent
-    halves neither bias exists: which photon of A is nearest says nothing about B.
+    large Voronoi cells, i.e. with few neighbours: 1-20 % dark. With independent sets
+    neither bias exists: which photon of A is nearest says nothing about B. B was the
+    odd half only: at a stride of 4, 7/8 of the paths now, and where photons are sparse
+    (a room lit through a door: a median of 2 photons of the odd half per disc) the
+    estimates' noise is the image's, one seed to the next: the door-ajar proxy's mean
+    moved by sd 0.94 % over 16 photon seeds, now 0.72 %, relMSE -4 %.
 
     ``radius`` is the base radius of the estimates, which shrinks where photons are
-    dense (:class:`PointGridPyramid`) so that a disc of B holds ~``per_estimate`` / 2
-    photons. ``max_depth`` limits the photons counted (camera paths of bounded length).
-    ``caustics`` (``(map, grid, radius, delta_scale)`` of the caustic map, or None): the caustic
-    map's irradiance is estimated at A's photons too (``irradiance_caustic``), for gather
-    rays that bounce on at a near hit (:func:`~pmic_integrator.gather.trace_gather_rays`).
+    dense (:class:`PointGridPyramid`) so that a disc of B holds about ``per_estimate``
+    times B's share of the paths. ``max_depth`` limits the photons counted (camera paths
+    of bounded length). ``caustics`` (``(map, grid, radius, delta_scale)`` of the
+    caustic map, or None): the caustic map's irradiance is estimated at A's photons too
+    (``irradiance_caustic``), for gather rays that bounce on at a near hit
+    (:func:`~pmic_integrator.gather.trace_gather_rays`).
     """
     if photons.count == 0:
         return PhotonMap.empty()
@@ -303,9 +309,15 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     if half_a.count == 0 or half_b.count == 0 or half_b.paths_emitted == 0:
         return PhotonMap.empty()
     stride = precompute_stride(half_a.count)
-    if stride > 1:  # whole paths of A (even path indices), as independent of B as A
-        half_a = half_a.select(dr.compress((half_a.path >> 1) % opaque_u32(stride) == 0))
-    grid_b, order = PointGridPyramid.build(half_b.position, radius, 0.5 * per_estimate)
+    if stride > 1:
+        # Whole paths: one in ``stride`` of the even ones; B is the rest of the map.
+        chosen = ((photons.path & 1) == 0) & ((photons.path >> 1) % opaque_u32(stride) == 0)
+        half_a = photons.select(dr.compress(chosen))
+        half_b = photons.select(dr.compress(~chosen))
+        paths_a = -(-(photons.paths_emitted - photons.paths_emitted // 2) // stride)
+        half_b.paths_emitted = photons.paths_emitted - paths_a
+    share = half_b.paths_emitted / photons.paths_emitted
+    grid_b, order = PointGridPyramid.build(half_b.position, radius, share * per_estimate)
     half_b = half_b.select(order)
     # Opaque: it moves with the photon seed (a constant would compile a kernel per seed).
     scale = opaque_float(photons.paths_emitted / half_b.paths_emitted)
