@@ -29,7 +29,8 @@ def luminance(image):
 
 
 def render(scene, spp, seed=0, **params):
-    integrator = mi.load_dict({"type": "pmic", **SMALL, **params})
+    """pmic's image; ``seed`` is both the scene seed (photons, cache) and the render's."""
+    integrator = mi.load_dict({"type": "pmic", **SMALL, "seed": seed, **params})
     image = np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed))
     assert np.isfinite(image).all()
     return image, integrator
@@ -142,8 +143,11 @@ def test_coated_walls_reflect_the_cosine_weighted_average(material):
 
 def test_sparse_photons_in_a_room_lit_through_a_door():
     """Precomputed irradiance counted the photon it sits on: +3/k with k photons per
-    disc, large where photons are sparse (before: +23 % at lookup_size 8)."""
-    assert ratio_to_path(sb.two_rooms(size=(32, 24)), lookup_size=8) == pytest.approx(1.0, abs=0.03)
+    disc, large where photons are sparse (before: +23 % at lookup_size 8). At 8 photons
+    per estimate one photon map's image moves by ~1.5 % from one photon seed to the
+    next (over 10 seeds 1.002-1.009 of path's on average): the mean of four."""
+    ratios = [ratio_to_path(sb.two_rooms(size=(32, 24)), lookup_size=8, seed=seed) for seed in range(4)]
+    assert np.mean(ratios) == pytest.approx(1.0, abs=0.025)
 
 
 def test_scene_size_counts_merged_meshes():

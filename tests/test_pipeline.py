@@ -316,11 +316,10 @@ def test_guiding_is_used_where_bounced_light_matters(name, pays):
         assert np.mean(guide[:, -1] == 1.0) > 0.95
 
 
-@pytest.mark.parametrize("target, stride", [(20_000, 1), (200_000, 4)])
+@pytest.mark.parametrize("target, stride", [(20_000, 1), (200_000, 6)])
 def test_irradiance_is_precomputed_at_whole_even_paths_one_in_stride(target, stride):
-    """Half A (even light paths) gets the estimates, from half B (odd ones); of A, one
-    path in ``precompute_stride`` (4 for a 200k map, 1 where fewer than 2**14 photons
-    would remain)."""
+    """Of the even light paths, one in ``precompute_stride`` gets the estimates (6 for
+    a 200k map, where 8 would leave under 2**14 photons; 1 for a 20k map)."""
     from pmic_integrator import irradiance
 
     scene = mi.load_dict(cornell())
@@ -336,8 +335,8 @@ def test_irradiance_is_precomputed_at_whole_even_paths_one_in_stride(target, str
 
 def test_precomputed_irradiance_counts_every_photon_of_the_other_paths():
     """On a plane of 140k photons, one per path, precomputed at one in 4 even paths (A,
-    1/8 of the map): the estimates count the 7/8 of the photons of other paths, not the
-    odd half alone. Unbiased (mean within 1 % of the plane's irradiance, n·p / area) and
+    1/8 of the map: 2**14 photons must remain): the estimates count the 7/8 of the
+    photons of other paths, not the odd half alone. Unbiased (mean within 1 % of the plane's irradiance, n·p / area) and
     with the noise of that many photons: relative sd sqrt(9 / (5 λ π r²)) for λ photons
     per unit area in the disc of radius r (Simpson kernel), 0.087 against the odd half's
     0.115."""

@@ -50,14 +50,18 @@ CELL_SURFACE_FACES = 1.25
 DENSITY_QUANTILE = 0.3
 #: Photons sampled to find that quantile.
 DENSITY_SAMPLE = 1 << 16
-#: Irradiance is precomputed at one in PRECOMPUTE_STRIDE of half A's photons (as
+#: Irradiance is precomputed at one in PRECOMPUTE_STRIDE of the even paths' photons (as
 #: Christensen precomputes it at a fraction of the map), while at least
 #: MIN_PRECOMPUTED remain: an estimate spans ~per_estimate photons, so neighbouring
 #: photons' estimates share most of them, and a gather ray reading the nearest of a
 #: sparser set reads nearly the same value. Bundled scenes' relMSE and luminance were
 #: unchanged at strides 4 and 8 (1/8 and 1/16 of the map); the stage took half the
-#: time (lamp room 0.28 -> 0.13 s), and the gather source's grids shrank with it.
-PRECOMPUTE_STRIDE = 4
+#: time (lamp room 0.28 -> 0.13 s), and the gather source's grids shrank with it. Since
+#: the estimates count every other path's photons (precompute_irradiance), 8 rather
+#: than 4: as many photons scanned as the odd half's at 4 (the door-ajar proxy's
+#: precomputation 0.09 s either way; 0.14 s at 4), and the dim room's estimates less
+#: noisy still (see precompute_irradiance).
+PRECOMPUTE_STRIDE = 8
 MIN_PRECOMPUTED = 1 << 14
 
 
@@ -290,10 +294,11 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     at the photon, but gather rays read the *nearest* photon, which picks photons with
     large Voronoi cells, i.e. with few neighbours: 1-20 % dark. With independent sets
     neither bias exists: which photon of A is nearest says nothing about B. B was the
-    odd half only: at a stride of 4, 7/8 of the paths now, and where photons are sparse
-    (a room lit through a door: a median of 2 photons of the odd half per disc) the
-    estimates' noise is the image's, one seed to the next: the door-ajar proxy's mean
-    moved by sd 0.94 % over 16 photon seeds, now 0.72 %, relMSE -4 %.
+    odd half only: at a stride of 8, 15/16 of the paths now, and where photons are
+    sparse (a room lit through a door: a median of 2 photons of the odd half per disc)
+    the estimates' noise is the image's, one seed to the next: the door-ajar proxy's
+    mean moved by sd 0.94 % over 16 photon seeds (stride 4, odd half), 0.72 % with the
+    rest at stride 4, now 0.50 %; relMSE 2.12e-3 -> 2.04e-3.
 
     ``radius`` is the base radius of the estimates, which shrinks where photons are
     dense (:class:`PointGridPyramid`) so that a disc of B holds about ``per_estimate``
