@@ -362,6 +362,13 @@ def test_precomputed_irradiance_counts_every_photon_of_the_other_paths():
     density = (n - n // 8) / 4.0
     expected_sd = np.sqrt(9.0 / (5.0 * density * np.pi * r * r))
     assert e.std() / e.mean() == pytest.approx(expected_sd, rel=0.1)
+    # From the odd half only (what open scenes use: pipeline.OTHER_PATHS_MIN_BOUNCED):
+    # the same photons precomputed, half the photons counted.
+    odd = irradiance.precompute_irradiance(plane, r, 1e6, other_paths=False)
+    assert (np.array(odd.path) == path).all()
+    e_odd = np.array(odd.irradiance)[0][inside]
+    assert e_odd.mean() == pytest.approx(truth, rel=0.015)
+    assert e_odd.std() / e_odd.mean() == pytest.approx(np.sqrt(9.0 / (5.0 * n / 8.0 * np.pi * r * r)), rel=0.1)
 
 
 def test_the_last_batch_keeps_the_path_that_reaches_the_target(monkeypatch):

@@ -278,7 +278,8 @@ def precompute_stride(photons_a: int) -> int:
 
 
 def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float,
-                          max_depth: int | None = None, caustics=None) -> PhotonMap:
+                          max_depth: int | None = None, caustics=None,
+                          other_paths: bool = True) -> PhotonMap:
     """Irradiance at photons (stage 2 of the paper), free of the self-term bias.
 
     The photons of one in :func:`precompute_stride` of the even light paths (set A)
@@ -298,7 +299,9 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     sparse (a room lit through a door: a median of 2 photons of the odd half per disc)
     the estimates' noise is the image's, one seed to the next: the door-ajar proxy's
     mean moved by sd 0.94 % over 16 photon seeds (stride 4, odd half), 0.72 % with the
-    rest at stride 4, now 0.50 %; relMSE 2.12e-3 -> 2.04e-3.
+    rest at stride 4, now 0.50 %; relMSE 2.12e-3 -> 2.04e-3. With ``other_paths``
+    False, B is the odd half only (open scenes, where bounced light is little of the
+    image: the pipeline's choice, see ``pipeline.OTHER_PATHS_MIN_BOUNCED``).
 
     ``radius`` is the base radius of the estimates, which shrinks where photons are
     dense (:class:`PointGridPyramid`) so that a disc of B holds about ``per_estimate``
@@ -314,7 +317,9 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     if half_a.count == 0 or half_b.count == 0 or half_b.paths_emitted == 0:
         return PhotonMap.empty()
     stride = precompute_stride(half_a.count)
-    if stride > 1:
+    if stride > 1 and not other_paths:  # whole paths; B stays the odd half
+        half_a = half_a.select(dr.compress((half_a.path >> 1) % opaque_u32(stride) == 0))
+    elif stride > 1:
         # Whole paths: one in ``stride`` of the even ones; B is the rest of the map.
         chosen = ((photons.path & 1) == 0) & ((photons.path >> 1) % opaque_u32(stride) == 0)
         half_a = photons.select(dr.compress(chosen))
