@@ -317,15 +317,15 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     if half_a.count == 0 or half_b.count == 0 or half_b.paths_emitted == 0:
         return PhotonMap.empty()
     stride = precompute_stride(half_a.count)
-    if stride > 1 and not other_paths:  # whole paths; B stays the odd half
-        half_a = half_a.select(dr.compress((half_a.path >> 1) % opaque_u32(stride) == 0))
-    elif stride > 1:
-        # Whole paths: one in ``stride`` of the even ones; B is the rest of the map.
+    if stride > 1:
+        # Whole paths: one in ``stride`` of the even ones; with ``other_paths`` B is the
+        # rest of the map, else it stays the odd half.
         chosen = ((photons.path & 1) == 0) & ((photons.path >> 1) % opaque_u32(stride) == 0)
         half_a = photons.select(dr.compress(chosen))
-        half_b = photons.select(dr.compress(~chosen))
-        paths_a = -(-(photons.paths_emitted - photons.paths_emitted // 2) // stride)
-        half_b.paths_emitted = photons.paths_emitted - paths_a
+        if other_paths:
+            half_b = photons.select(dr.compress(~chosen))
+            paths_a = -(-(photons.paths_emitted - photons.paths_emitted // 2) // stride)
+            half_b.paths_emitted = photons.paths_emitted - paths_a
     share = half_b.paths_emitted / photons.paths_emitted
     grid_b, order = PointGridPyramid.build(half_b.position, radius, share * per_estimate)
     half_b = half_b.select(order)
