@@ -106,7 +106,7 @@ def _emitter_scale(em):
 
 def cornell(res=RES, scale=1.0, light=True, radiance_factor=1.0, back=None, extra=None,
             bsdf_object=None, twosided_panel=False, thin_slab=False, zero_area=False,
-            hidden_light=False):
+            hidden_light=False, light_texture=None):
     """Mitsuba's Cornell box (open at the front), optionally scaled and edited."""
     mi = _mi()
     d = mi.cornell_box()
@@ -116,6 +116,9 @@ def cornell(res=RES, scale=1.0, light=True, radiance_factor=1.0, back=None, extr
         rad = [c * radiance_factor for c in d["light"]["emitter"]["radiance"]["value"]]
         d["light"]["emitter"]["radiance"]["value"] = rad
         light_scale = max(rad)
+        if light_texture is not None:
+            d["light"]["emitter"]["radiance"] = light_texture
+            light_scale = max(light_texture.get("color0", 1.0), light_texture.get("color1", 1.0))
     else:
         d.pop("light")
     if back is not None:
@@ -168,13 +171,26 @@ def cornell(res=RES, scale=1.0, light=True, radiance_factor=1.0, back=None, extr
 
 
 def cornell_lights(res=RES, kind="point"):
-    """The Cornell box with its area light replaced by a point or a spot light."""
+    """The Cornell box with its area light replaced by a point or a spot light, or
+    lit by a light whose texture is procedural (Mitsuba cannot sample a checkerboard:
+    ``spot_textured``, ``projector``, ``area_textured``)."""
+    down = _T().look_at(origin=[0.0, 0.95, 0.0], target=[0.0, -1.0, 0.0], up=[0, 0, 1])
     if kind == "point":
         em = {"type": "point", "position": [0.0, 0.85, 0.0], "intensity": _rgb(4.0)}
-    else:
+    elif kind in ("spot", "spot_textured"):
         em = {"type": "spot", "intensity": _rgb(8.0), "cutoff_angle": 40.0, "beam_width": 30.0,
-              "to_world": _T().look_at(origin=[0.0, 0.95, 0.0], target=[0.0, -1.0, 0.0],
-                                       up=[0, 0, 1])}
+              "to_world": down}
+        if kind == "spot_textured":
+            em["texture"] = _checker([1.0] * 3, [0.2] * 3)
+    elif kind == "projector":
+        em = {"type": "projector", "fov": 60.0, "scale": 4.0, "to_world": down,
+              "irradiance": _checker([1.0] * 3, [0.2] * 3)}
+    elif kind == "area_textured":
+        # (Scalar colours: an RGB texture above 1 is refused as a reflectance.)
+        return cornell(res=res, light_texture={"type": "checkerboard", "color0": 20.0,
+                                               "color1": 2.0})
+    else:
+        raise ValueError(f"cornell_lights: unknown kind {kind!r}")
     return cornell(res=res, light=False, extra={"lamp": em})
 
 

@@ -160,6 +160,9 @@ match("split_room_camera_lit", {"name": "split_room", "camera": "lit"})
 # --- Each emitter type alone (the area light: cornell_area_light above).
 match("emitter_point", {"name": "cornell_lights", "kind": "point"})
 match("emitter_spot", {"name": "cornell_lights", "kind": "spot"})
+match("emitter_spot_textured", {"name": "cornell_lights", "kind": "spot_textured"})
+match("emitter_projector", {"name": "cornell_lights", "kind": "projector"})
+match("emitter_area_textured", {"name": "cornell_lights", "kind": "area_textured"})
 for e in ("directional", "constant", "envmap", "envmap_rotated"):
     match(f"emitter_{e}", {"name": "outdoor", "emitter": e})
 match("emitter_enclosed", {"name": "enclosed_light"}, black=True)

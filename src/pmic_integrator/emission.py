@@ -250,6 +250,72 @@ def _finite(weight) -> mi.Bool:
     return ok
 
 
+def _finite_rays_one_by_one(scene: mi.Scene, index, time, sample1, sample2, sample3, active):
+    """The finite emitters' rays, emitter by emitter: each its own ``sample_ray``, or
+    :func:`_sample_ray_by_evaluation` where that raises.
+
+    Mitsuba's ``sample_ray`` needs the emitter's texture to be sampled
+    (``sample_spectrum``, ``sample_position``), which procedural textures do not
+    implement: an area light, a spot or a projector with a ``checkerboard`` raised
+    "not implemented" (``path`` renders them: it only evaluates). One such emitter
+    fails the call over all of them (a Dr.Jit call traces every emitter), hence the
+    loop, taken only then."""
+    n = dr.width(active)
+    ray = dr.zeros(mi.Ray3f, n)
+    weight = dr.zeros(mi.Spectrum, n)
+    for i, emitter in enumerate(scene.emitters()):
+        if mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite):
+            continue
+        mine = active & (index == i)
+        try:
+            ray_i, weight_i = emitter.sample_ray(time, sample1, sample2, sample3, mine)
+        except RuntimeError:
+            ray_i, weight_i = _sample_ray_by_evaluation(emitter, time, sample2, sample3, mine)
+        ray = dr.select(mine, ray_i, ray)
+        weight = dr.select(mine, mi.Spectrum(weight_i), weight)
+    return ray, weight
+
+
+def _sample_ray_by_evaluation(emitter, time, sample2, sample3, active):
+    """A ray of ``emitter`` sampled without its texture's sampling: uniform over the
+    geometry and evaluated (unbiased; noisier where the texture varies).
+
+    * On a shape (an area light): a point by the shape's ``sample_position`` (density
+      p_A), a cosine-weighted direction, weight ``L(x, ω) π / p_A``.
+    * A spot or projector: from its position, a direction uniform in the spot's cone
+      (else over the sphere), weight ``I(ω) / p_ω``; ``I(ω)`` is what the emitter's
+      ``sample_direction`` returns towards a point at distance 1 along ω.
+    """
+    shape = emitter.get_shape()
+    if shape is not None:
+        ps = shape.sample_position(time, sample2, active)
+        si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ps.pdf))
+        si.p, si.n, si.uv, si.time = ps.p, ps.n, ps.uv, time
+        si.sh_frame = mi.Frame3f(ps.n)
+        local = mi.warp.square_to_cosine_hemisphere(sample3)
+        si.wi = local  # eval reads the emitted direction in the local frame
+        radiance = emitter.eval(si, active)
+        weight = radiance * dr.select(ps.pdf > 0, dr.pi / ps.pdf, 0.0)
+        direction = mi.Frame3f(ps.n).to_world(local)
+        return mi.Ray3f(ps.p, direction, time, si.wavelengths), weight
+    params = mi.traverse(emitter)
+    to_world = mi.Transform4f(params["to_world"]) if "to_world" in params else mi.Transform4f()
+    if "cutoff_angle" in params:
+        cos_cutoff = dr.cos(dr.deg2rad(mi.Float(params["cutoff_angle"])))
+        local = mi.warp.square_to_uniform_cone(sample3, cos_cutoff)
+        pdf = mi.warp.square_to_uniform_cone_pdf(local, cos_cutoff)
+    else:
+        local = mi.warp.square_to_uniform_sphere(sample3)
+        pdf = mi.warp.square_to_uniform_sphere_pdf(local)
+    origin = to_world @ mi.Point3f(0.0, 0.0, 0.0)
+    direction = dr.normalize(to_world @ mi.Vector3f(local))
+    it = dr.zeros(mi.Interaction3f, dr.width(pdf))
+    it.p, it.time = origin + direction, time
+    ds, intensity = emitter.sample_direction(it, sample2, active)
+    weight = intensity * dr.select(pdf > 0, dr.rcp(pdf), 0.0)
+    return mi.Ray3f(origin, direction, time, it.wavelengths), weight
+
+
 def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active=True,
                         bounds: tuple | None = None):
     """Sample emitted rays; same meaning and return value as ``scene.sample_emitter_ray``.
@@ -284,8 +350,13 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
     infinite = active & mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite)
     finite_kind = active & ~infinite
 
-    # Area / point / spot / ...: Mitsuba's own sample_ray (correct).
-    ray_f, weight_f = emitter.sample_ray(time, sample1, sample2, sample3, finite_kind)
+    # Area / point / spot / ...: Mitsuba's own sample_ray (correct), unless some
+    # emitter's cannot run (below).
+    try:
+        ray_f, weight_f = emitter.sample_ray(time, sample1, sample2, sample3, finite_kind)
+    except RuntimeError:
+        ray_f, weight_f = _finite_rays_one_by_one(scene, index, time, sample1, sample2, sample3,
+                                                  finite_kind)
 
     # Infinite emitters: direction from sample_direction, origin on the rectangle that
     # bounds the box's projection, perpendicular to the *world-space* direction, placed
