@@ -165,11 +165,15 @@ def _random_records(count, seed):
     return p, nrm.astype(np.float32), r, e, gt, gr
 
 
+@pytest.mark.parametrize("packed", [False, True])
 @pytest.mark.parametrize("crowded", [False, True])
-def test_interpolation_matches_brute_force_ward_formula(crowded):
+def test_interpolation_matches_brute_force_ward_formula(crowded, packed):
     """Ward's interpolation (with the backup reach) against the formula in NumPy;
     ``crowded`` adds a cluster of wide records, so that some queries are reached by
-    more records than the interpolation's first pass keeps (INTERPOLATION_SLOTS)."""
+    more records than the interpolation's first pass keeps (INTERPOLATION_SLOTS);
+    ``packed``: read from the records laid out record by record (RecordIndex.pack),
+    as renders read them. Each record also holds direct light, added after the
+    extrapolation's clamp."""
     a = 0.6
     p, nrm, r, e, gt, gr = _random_records(120, 7)
     if crowded:
@@ -182,6 +186,11 @@ def test_interpolation_matches_brute_force_ward_formula(crowded):
     records = CacheRecords(mi.Point3f(p.T), mi.Vector3f(nrm.T), mi.Float(r), mi.Color3f(e.T),
                            tuple(mi.Vector3f(g.T) for g in gt), tuple(mi.Vector3f(g.T) for g in gr))
     index = RecordIndex.build(records, a)
+    direct = np.random.default_rng(5).random((len(r), 3)).astype(np.float32)
+    index.direct = mi.Color3f(direct.T)
+    if packed:
+        index.pack()
+    assert (index.packed_body is not None) == packed
     rng = np.random.default_rng(8)
     x = rng.random((500, 3)).astype(np.float32)
     x[:, 2] *= 0.05
@@ -211,7 +220,7 @@ def test_interpolation_matches_brute_force_ward_formula(crowded):
         want_cov[q] = True
         rot = np.cross(nrm, qn[q])
         ext = np.stack([e[:, c] + ((x[q] - p) * gt[c]).sum(1) + (rot * gr[c]).sum(1) for c in range(3)], 1)
-        ext = np.maximum(ext, 0.0)
+        ext = np.maximum(ext, 0.0) + direct
         want[q] = (w[:, None] * ext).sum(0) / w.sum()
     assert backup_used > 5  # the backup path is exercised
     # ...and the slots, and (crowded) the second walk of lanes that overflow them.

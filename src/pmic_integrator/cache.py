@@ -17,7 +17,7 @@ sum cause no brightness step (one of the paper's weak points).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -111,6 +111,11 @@ EVEN_SKY_OPENNESS = 1.0
 #: whole cost three times the walk. Queries that more records reach walk the cell
 #: again the old way; the sums are the same, term for term, either way.
 INTERPOLATION_SLOTS = 8
+#: Floats per record in RecordIndex.pack(): position, normal, radius, nearest hit; then
+#: irradiance, direct light, translational and rotational gradients (24, padded to a
+#: power of two: Dr.Jit reads powers of two as packet loads).
+PACKED_HEAD = 8
+PACKED_BODY = 32
 
 
 @dataclass
@@ -247,6 +252,16 @@ def block_sum(values, block: int, op: str = "sum"):
 # --------------------------------------------------------------------------------------
 # Ward's error metric and the interpolation weight
 # --------------------------------------------------------------------------------------
+def _interleave(columns) -> mi.Float:
+    """``len(columns)`` arrays of one length as one array, record by record."""
+    count, k = dr.width(columns[0]), len(columns)
+    out = dr.zeros(mi.Float, count * k)
+    base = dr.arange(mi.UInt32, count) * k
+    for j, column in enumerate(columns):
+        dr.scatter(out, mi.Float(column), base + j)
+    return out
+
+
 def ward_error(x: mi.Point3f, n: mi.Vector3f, rec_p: mi.Point3f, rec_n: mi.Vector3f,
                rec_radius: mi.Float) -> mi.Float:
     """ε = |x − xᵢ| / Rᵢ + sqrt(1 − n·nᵢ) (Ward et al. 1988); Ward's weight is 1/ε."""
@@ -888,6 +903,12 @@ class RecordIndex:
     #: The brightest records as spherical lights (final gather: continuation rays are drawn
     #: towards them, :mod:`pmic_integrator.lights`); None: no record stands out.
     lights: RecordLights | None = None
+    #: What interpolation reads of each record, record by record (:meth:`pack`):
+    #: PACKED_HEAD floats of geometry and PACKED_BODY of light. None: read field by
+    #: field from ``records``.
+    #: (Derived: not written to cache files.)
+    packed_head: mi.Float = field(default=None, metadata={"derived": True})
+    packed_body: mi.Float = field(default=None, metadata={"derived": True})
 
     @staticmethod
     def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0,
@@ -916,6 +937,35 @@ class RecordIndex:
         index.lights = self.lights
         return index
 
+    def pack(self) -> "RecordIndex":
+        """Lay out what interpolation reads of each record contiguously, so that a
+        lookup loads it with a few packet loads instead of a gather per float (a
+        record's term read 37 floats, gathered one by one: half of a Cornell box's
+        camera pass). Call it once the records and ``direct`` are final (the render
+        does); the sums are those of the field-by-field reads but for rounding (the
+        rotational gradient is kept as ``∇ᵣE × n_s``, read as one dot product).
+        Returns ``self``."""
+        r = self.records
+        if r.count == 0:
+            self.packed_head = self.packed_body = None
+            return self
+        zero = dr.zeros(mi.Float, r.count)
+        rsn = r.shading_normal if r.shading_normal is not None else r.normal
+        obstacle = r.obstacle if r.obstacle is not None else zero
+        head = [r.position.x, r.position.y, r.position.z, r.normal.x, r.normal.y, r.normal.z,
+                r.radius, obstacle]
+        direct = self.direct if self.direct is not None else dr.zeros(mi.Color3f, r.count)
+        body = [*r.irradiance, *direct]
+        for c in range(3):
+            body += [*r.grad_t[c]]
+        for c in range(3):
+            body += [*dr.cross(r.grad_r[c], rsn)]
+        body += [zero] * (PACKED_BODY - len(body))
+        self.packed_head = _interleave(head)
+        self.packed_body = _interleave(body)
+        dr.eval(self.packed_head, self.packed_body)
+        return self
+
     def _require_lookup(self):
         if self.backup_grid is None:
             raise RuntimeError("RecordIndex built with lookup=False: call for_lookup() first")
@@ -943,9 +993,7 @@ class RecordIndex:
 
         def find(state, index, valid):
             count, *slot = state
-            rp = dr.gather(mi.Point3f, r.position, index, valid)
-            rn = dr.gather(mi.Vector3f, r.normal, index, valid)
-            rr = dr.gather(mi.Float, r.radius, index, valid)
+            rp, rn, rr = self._record_geometry(index, valid)
             # (Ward's test implies a positive weight: the second pass tests that too.)
             ok = valid & covers(x, n, rp, rn, rr, max_error)
             slot = [dr.select(ok & (count == k), index, slot[k]) for k in range(slots)]
@@ -975,6 +1023,16 @@ class RecordIndex:
         whole = grid.for_each_ball(x, empty, accumulate, active=crowded, label=label + "_crowded")
         return tuple(dr.select(crowded, a, b) for a, b in zip(whole, state))
 
+    def _record_geometry(self, index, valid):
+        """Position, normal and radius of record ``index``."""
+        if self.packed_head is None:
+            r = self.records
+            return (dr.gather(mi.Point3f, r.position, index, valid),
+                    dr.gather(mi.Vector3f, r.normal, index, valid),
+                    dr.gather(mi.Float, r.radius, index, valid))
+        h = dr.gather(mi.ArrayXf, self.packed_head, index, valid, shape=(PACKED_HEAD, dr.width(index)))
+        return mi.Point3f(h[0], h[1], h[2]), mi.Vector3f(h[3], h[4], h[5]), mi.Float(h[6])
+
     def _record_term(self, max_error: float, x, n, shading_n, with_direct: bool = False):
         """``visit(state, index, valid)`` adding record ``index``'s weighted,
         extrapolated irradiance at (x, n) to ``state = (Σ wE, Σ w, Σ wR)`` where it
@@ -983,12 +1041,11 @@ class RecordIndex:
         record_shading_n = r.shading_normal if r.shading_normal is not None else r.normal
         visibility = self._visibility()
         direct = self.direct
+        packed = self.packed_body
 
         def visit(state, index, valid):
             total, weight_sum, radius_sum, *direct_sum = state
-            rp = dr.gather(mi.Point3f, r.position, index, valid)
-            rn = dr.gather(mi.Vector3f, r.normal, index, valid)
-            rr = dr.gather(mi.Float, r.radius, index, valid)
+            rp, rn, rr = self._record_geometry(index, valid)
             ok = valid & covers(x, n, rp, rn, rr, max_error)
             w = interpolation_weight(ward_error(x, n, rp, rn, rr), max_error)
             ok &= w > 0
@@ -996,8 +1053,21 @@ class RecordIndex:
                 scene, records, lift = visibility
                 ob = obstacle_towards(records, index, rp, x, ok)
                 ok &= ~hidden_from(scene, x, n, rp, rn, rr * max_error, ob, lift, ok)
-            e = dr.gather(mi.Color3f, r.irradiance, index, ok)
             dx = x - rp
+            if packed is not None:
+                b = dr.gather(mi.ArrayXf, packed, index, ok, shape=(PACKED_BODY, dr.width(index)))
+                ext = [b[c] + dr.dot(mi.Vector3f(b[6 + 3 * c], b[7 + 3 * c], b[8 + 3 * c]), dx)
+                       + dr.dot(mi.Vector3f(b[15 + 3 * c], b[16 + 3 * c], b[17 + 3 * c]), shading_n)
+                       for c in range(3)]
+                d = mi.Color3f(b[3], b[4], b[5])
+                e_x = dr.maximum(mi.Color3f(*ext), 0.0) + d
+                total = dr.select(ok, total + w * e_x, total)
+                weight_sum = dr.select(ok, weight_sum + w, weight_sum)
+                radius_sum = dr.select(ok, radius_sum + w * rr, radius_sum)
+                if with_direct:
+                    return total, weight_sum, radius_sum, dr.select(ok, direct_sum[0] + w * d, direct_sum[0])
+                return total, weight_sum, radius_sum
+            e = dr.gather(mi.Color3f, r.irradiance, index, ok)
             # The rotational gradient was gathered about the record's shading normal:
             # it extrapolates to the query's (the plane and Ward tests above keep the
             # geometric ones, which say where the surfaces are).
@@ -1072,9 +1142,7 @@ class RecordIndex:
 
         def visit(state, index, valid):
             best_w, best = state
-            rp = dr.gather(mi.Point3f, r.position, index, valid)
-            rn = dr.gather(mi.Vector3f, r.normal, index, valid)
-            rr = dr.gather(mi.Float, r.radius, index, valid)
+            rp, rn, rr = self._record_geometry(index, valid)
             ok = valid & covers(x, n, rp, rn, rr, self.max_error)
             w = interpolation_weight(ward_error(x, n, rp, rn, rr), self.max_error)
             ok &= (w > 0) & (dr.gather(mi.Float, r.guide, index * GUIDE_BINS + last, ok) > 0)

@@ -106,7 +106,7 @@ def _flatten(obj, name: str, arrays: dict):
     if dataclasses.is_dataclass(obj):
         return {"kind": "dataclass", "class": type(obj).__name__,
                 "fields": {f.name: _flatten(getattr(obj, f.name), f"{name}.{f.name}", arrays)
-                           for f in dataclasses.fields(obj)}}
+                           for f in dataclasses.fields(obj) if not f.metadata.get("derived")}}
     if dr.is_array_v(obj):
         type_name = next((t for t in _ARRAY_TYPES if getattr(mi, t, None) is type(obj)), None)
         if type_name is None:

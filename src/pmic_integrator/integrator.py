@@ -415,6 +415,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
                              evaluate):
         """Stage 4: camera rays over the film (:mod:`.camera`), ``sample()`` for each,
         reading ``view``, splatted into the film."""
+        if view.index is not None and view.index.packed_body is None:
+            view.index.pack()
         self._view = view
         self._fallback_counter = dr.zeros(mi.UInt32, 1)
         start = time.perf_counter()
