@@ -9,9 +9,12 @@ import pytest
 from pmic_integrator.hashgrid import BallGrid, PointGrid
 
 
-def _neighbors_by_grid(points, queries, radius, cell_size=None, octant=False):
-    """Sorted neighbour index lists (and squared distances) found through a PointGrid."""
+def _neighbors_by_grid(points, queries, radius, cell_size=None, octant=False, packed=False):
+    """Sorted neighbour index lists (and squared distances) found through a PointGrid
+    (``packed``: its entries read as packets, PointGrid.pack)."""
     grid = PointGrid.build(mi.Point3f(points.T), cell_size or (2 * radius if octant else radius))
+    if packed:
+        grid.pack()
     lanes = len(queries)
     # Record up to 64 neighbours per query as a bit-exact checksum: count, sum of
     # indices and sum of squared indices identify the set for these small inputs.
@@ -36,28 +39,30 @@ def _neighbors_brute(points, queries, radius):
     return (inside.sum(1), (inside * idx).sum(1) % 2**32, (inside * idx * idx).sum(1) % 2**32)
 
 
-def _check_exact(points, queries, radius, cell_size=None, octant=False):
-    got = _neighbors_by_grid(points, queries, radius, cell_size, octant)
+def _check_exact(points, queries, radius, cell_size=None, octant=False, packed=False):
+    got = _neighbors_by_grid(points, queries, radius, cell_size, octant, packed)
     want = _neighbors_brute(points, queries, radius)
     for g, w in zip(got, want):
         np.testing.assert_array_equal(g, w.astype(np.uint32))
     return got[0]
 
 
-def test_random_points_match_brute_force():
+@pytest.mark.parametrize("packed", [False, True])
+def test_random_points_match_brute_force(packed):
     rng = np.random.default_rng(1)
     points = rng.random((3000, 3), dtype=np.float32)
     queries = rng.random((700, 3), dtype=np.float32)
-    counts = _check_exact(points, queries, 0.08)
+    counts = _check_exact(points, queries, 0.08, packed=packed)
     assert counts.mean() > 3  # the test exercises real neighbourhoods
 
 
+@pytest.mark.parametrize("packed", [False, True])
 @pytest.mark.parametrize("seed", [11, 12])
-def test_octant_queries_match_brute_force(seed):
+def test_octant_queries_match_brute_force(seed, packed):
     rng = np.random.default_rng(seed)
     points = rng.random((3000, 3), dtype=np.float32)
     queries = np.concatenate([rng.random((700, 3), dtype=np.float32), points[:100]], 0)
-    counts = _check_exact(points, queries, 0.06, octant=True)
+    counts = _check_exact(points, queries, 0.06, octant=True, packed=packed)
     assert counts.mean() > 1
 
 
@@ -226,3 +231,59 @@ def test_one_loop_and_a_loop_per_cell_visit_in_the_same_order(octant):
         np.testing.assert_array_equal(out[True, full][0], out[False, full][0])
         np.testing.assert_array_equal(out[True, full][1], out[False, full][1])
     assert out[True, True][1].max() > 5 and out[True, False][1].max() == 5
+
+
+def _photons_on_a_box(count=20000, seed=3):
+    """Photons on the six faces of a unit box (inward normals), with powers, depths 1-3,
+    specular and delta flags: everything a density estimate filters on."""
+    from pmic_integrator.photons import PhotonMap
+    rng = np.random.default_rng(seed)
+    face = rng.integers(0, 6, count)
+    axis, side = face // 2, face % 2
+    p = rng.random((count, 3)).astype(np.float32)
+    p[np.arange(count), axis] = side
+    n = np.zeros((count, 3), np.float32)
+    n[np.arange(count), axis] = np.where(side == 1, -1.0, 1.0)
+    power = (rng.random((count, 3)) * 1e-3).astype(np.float32)
+    depth = rng.integers(1, 4, count).astype(np.uint32)
+    return PhotonMap(mi.Point3f(p.T), mi.Vector3f(n.T), mi.Color3f(power.T), mi.UInt32(depth),
+                     mi.Bool(rng.random(count) < 0.3), mi.UInt32(np.arange(count, dtype=np.uint32)),
+                     count, delta_light=mi.Bool(rng.random(count) < 0.5))
+
+
+def test_packed_photons_and_entries_give_the_same_estimates_and_nearest_photons():
+    """Density estimates and nearest-photon searches read the photons and grid entries
+    packed (PhotonMap.pack, PackedEntries: packet loads) or field by field: the very
+    same numbers, with every filter of the estimate in play."""
+    import dataclasses
+    from pmic_integrator.gather import GatherSource
+    from pmic_integrator.irradiance import estimate_irradiance, nearest_photon, sort_into_grid
+    photons, grid = sort_into_grid(_photons_on_a_box(), 0.08, 32)
+    assert photons.packed is not None and grid.packed is not None
+    plain_photons = dataclasses.replace(photons, packed=None)
+    plain_grid = dataclasses.replace(grid, packed=None)
+    rng = np.random.default_rng(9)
+    q = rng.random((3000, 3)).astype(np.float32)
+    q[:, 1] = 0.0  # on the floor (normal +y)
+    qp, qn = mi.Point3f(q.T), mi.Vector3f(0.0, 1.0, 0.0)
+    for kwargs in ({}, {"min_depth": 2, "skip_specular_paths": True},
+                   {"without_delta_direct": True, "max_depth": 2},
+                   {"delta_scale": 0.5, "nodelta_too": True}):
+        packed = estimate_irradiance(photons, grid, qp, qn, **kwargs)
+        plain = estimate_irradiance(plain_photons, plain_grid, qp, qn, **kwargs)
+        for a, b in zip(packed if isinstance(packed, tuple) else (packed,),
+                        plain if isinstance(plain, tuple) else (plain,)):
+            assert float(dr.mean(mi.luminance(a))[0]) > 0
+            np.testing.assert_array_equal(np.array(a), np.array(b))
+    photons.irradiance = dr.zeros(mi.Color3f, photons.count)
+    source = GatherSource.build(photons, 0.05)
+    assert source.near_grid.packed is not None and source.near_grid.packed.has_normals
+    for steps in ((source.near_photons, source.near_grid, 0.025, True),
+                  (source.mid_photons, source.mid_grid, 0.1, False)):
+        photons_s, grid_s, reach, octant = steps
+        packed = nearest_photon(photons_s, grid_s, qp, qn, reach, octant=octant)
+        plain = nearest_photon(photons_s, dataclasses.replace(grid_s, packed=None), qp, qn, reach,
+                               octant=octant)
+        assert np.array(packed[1]).mean() > 0.5
+        np.testing.assert_array_equal(np.array(packed[0]), np.array(plain[0]))
+        np.testing.assert_array_equal(np.array(packed[1]), np.array(plain[1]))

@@ -196,5 +196,7 @@ def load(path, scene, fingerprint: str, settings_key: tuple):
     except (KeyError, TypeError, ValueError, RuntimeError) as error:
         raise CacheFileError(f"{where} is corrupt ({type(error).__name__}: {error})") from error
     from .skylight import SkySampler
+    from .pipeline import pack_for_queries
     prepared.sky = SkySampler.build(scene)
-    return prepared
+    # (The packed layouts are derived, not stored: laid out again as after a build.)
+    return pack_for_queries(prepared)

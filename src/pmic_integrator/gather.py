@@ -185,11 +185,21 @@ class GatherSource:
         mid = PointGrid.build(photons.position, 2.0 * radius)
         # Step 4 searches the coarse grid itself where no cell needs thinning.
         wide_photons, wide_grid = GatherSource._spread(coarse_photons, coarse)
-        return GatherSource(coarse_photons, coarse, reach,
-                            near_photons, near.sorted_in_place(),
-                            mid_photons=photons.select(mid.order), mid_grid=mid.sorted_in_place(),
-                            far_photons=far_photons, far_grid=far_grid,
-                            wide_photons=wide_photons, wide_grid=wide_grid)
+        source = GatherSource(coarse_photons, coarse, reach,
+                              near_photons, near.sorted_in_place(),
+                              mid_photons=photons.select(mid.order), mid_grid=mid.sorted_in_place(),
+                              far_photons=far_photons, far_grid=far_grid,
+                              wide_photons=wide_photons, wide_grid=wide_grid)
+        return source.pack()
+
+    def pack(self) -> "GatherSource":
+        """Lay out its grids' entries for the searches (:meth:`PointGrid.pack`)."""
+        for photons, grid in ((self.photons, self.grid), (self.near_photons, self.near_grid),
+                              (self.mid_photons, self.mid_grid), (self.far_photons, self.far_grid),
+                              (self.wide_photons, self.wide_grid)):
+            if grid is not None:
+                grid.pack(photons.normal)
+        return self
 
     @staticmethod
     def _spread(photons: PhotonMap, grid: PointGrid):

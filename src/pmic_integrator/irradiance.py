@@ -205,7 +205,38 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
             weight2 = dr.fma(w * w, dr.squared_norm(tangent), weight2)
         return total, moment, weight, weight2
 
+    packed = photons.packed
+
+    def visit_packed(state, index, dist2, valid, offset):
+        whole = state[:4]
+        plane = dr.abs(dr.dot(offset, query_n))
+        ok = valid & (plane < PLANE_TOLERANCE * radius)
+        photon = dr.gather(mi.ArrayXf, packed, index, ok, shape=(PhotonMap.PACKED_WIDTH, dr.width(index)))
+        ok &= dr.dot(mi.Vector3f(photon[0], photon[1], photon[2]), query_n) > NORMAL_COSINE
+        depth = dr.reinterpret_array(mi.UInt32, photon[6])
+        flags = dr.reinterpret_array(mi.UInt32, photon[7])
+        if min_depth is not None:
+            ok &= depth >= min_depth
+        if max_depth is not None:
+            ok &= depth <= max_depth
+        if skip_specular_paths:
+            ok &= (flags & 1) == 0
+        from_delta = (flags & 2) != 0
+        if without_delta_direct:
+            ok &= ~(from_delta & (depth == 1))
+        power = dr.select(ok, mi.Color3f(photon[3], photon[4], photon[5]), 0.0)
+        k = dr.square(1.0 - dist2 * inv_r2)
+        if narrow_delta:
+            k_delta = dr.square(dr.maximum(1.0 - dist2 * inv_r2 * inv_s2, 0.0)) * inv_s2
+            k = dr.select(from_delta & ok, k_delta, k)
+        if not nodelta_too:
+            return sums(whole, power, k, offset)
+        direct = ok & from_delta & (depth == 1)
+        return sums(whole, power, k, offset) + sums(state[4:], dr.select(direct, 0.0, power), k, offset)
+
     def visit(state, index, dist2, valid, offset):
+        if packed is not None:
+            return visit_packed(state, index, dist2, valid, offset)
         whole = state[:4]
         ok = _compatible(photons, index, offset, valid, query_n, radius)
         if min_depth is not None or max_depth is not None:
@@ -328,7 +359,7 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
             half_b.paths_emitted = photons.paths_emitted - paths_a
     share = half_b.paths_emitted / photons.paths_emitted
     grid_b, order = PointGridPyramid.build(half_b.position, radius, share * per_estimate)
-    half_b = half_b.select(order)
+    half_b = half_b.select(order).pack()
     # Opaque: it moves with the photon seed (a constant would compile a kernel per seed).
     scale = opaque_float(photons.paths_emitted / half_b.paths_emitted)
     # Without the direct light of delta lights (a sun, a spot) too, where there are
@@ -363,15 +394,21 @@ def nearest_photon(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
     # Opaque: a radius measured from the photons must not be baked into the kernel.
     radius = opaque_float(radius) if isinstance(radius, (int, float)) else radius
 
-    def visit(state, index, dist2, valid, offset):
+    def visit(state, index, dist2, valid, offset, normal=None):
         best_d2, best = state
-        ok = _compatible(photons, index, offset, valid & (dist2 < best_d2), query_n, radius)
+        if normal is None:
+            ok = _compatible(photons, index, offset, valid & (dist2 < best_d2), query_n, radius)
+        else:  # (the normal read with the grid entry: PointGrid.pack)
+            ok = valid & (dist2 < best_d2) & (dr.abs(dr.dot(offset, query_n)) < PLANE_TOLERANCE * radius) \
+                & (dr.dot(normal, query_n) > NORMAL_COSINE)
         closer = ok & (dist2 < best_d2)
         return dr.select(closer, dist2, best_d2), dr.select(closer, index, best)
 
     init = (dr.full(mi.Float, dr.inf, lanes), dr.zeros(mi.UInt32, lanes))
+    with_normal = isinstance(grid, PointGrid) and grid.packed is not None and grid.packed.has_normals
     best_d2, best = grid.for_each_neighbor(query_p, radius, init, visit, active=active,
-                                           label="nearest_photon", with_offset=True, octant=octant)
+                                           label="nearest_photon",
+                                           with_offset="normal" if with_normal else True, octant=octant)
     return best, dr.isfinite(best_d2)
 
 
@@ -383,7 +420,7 @@ def sort_into_grid(photons, radius: float, per_estimate: float, levels: int | No
     if photons.count == 0:
         return photons, None
     grid, order = PointGridPyramid.build(photons.position, radius, per_estimate, levels)
-    return photons.select(order), grid
+    return photons.select(order).pack(), grid
 
 
 

@@ -390,6 +390,22 @@ def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
     return prepared
 
 
+def pack_for_queries(prepared: "PreparedScene") -> "PreparedScene":
+    """Lay out the photon maps, their grids and the gather source's grids entry by
+    entry for the queries (:meth:`PhotonMap.pack`, :meth:`PointGridPyramid.packed_entries`,
+    :meth:`GatherSource.pack`), as a build does; for a prepared scene read from a cache
+    file, which does not hold these derived arrays. The records are packed at each
+    render (:meth:`RecordIndex.pack`). Returns ``prepared``."""
+    for photons, grid in ((prepared.global_map, prepared.global_grid),
+                          (prepared.caustic_map, prepared.caustic_grid)):
+        if photons.count and grid is not None:
+            photons.pack()
+            grid.packed_entries()
+    if prepared.gather_source is not None:
+        prepared.gather_source.pack()
+    return prepared
+
+
 def plan_passes(info: SceneInfo, settings: Settings):
     """Which photon maps this scene needs: ``(need_global, need_caustic, skipped)``,
     each skip with its reason."""
