@@ -364,7 +364,8 @@ class PointGrid:
     def nbytes(self) -> int:
         """Memory held by the grid's own arrays."""
         per_point = 12 + 4 + (4 if self.order is not None else 0)
-        return per_point * self.count + 4 * (self.table_mask + 2)
+        packed = 4 * dr.width(self.packed.data) if self.packed is not None else 0
+        return per_point * self.count + 4 * (self.table_mask + 2) + packed
 
     def occupancy(self, query: mi.Point3f, active=True) -> mi.UInt32:
         """Points in each query's cell (hash collisions add their buckets' others)."""
@@ -660,8 +661,9 @@ class PointGridPyramid:
         return pyramid, order
 
     def nbytes(self) -> int:
+        packed = 4 * dr.width(self.packed.data) if self.packed is not None else 0
         return (12 + 4 + 4) * dr.width(self.index) + 4 * (self.table_mask + 2) \
-            + 4 * (self.level0_mask + 2) + 4 * (self.level0_mask + 1)
+            + 4 * (self.level0_mask + 2) + 4 * (self.level0_mask + 1) + packed
 
     def level_of(self, query: mi.Point3f, active=True):
         """The level each query should search (see the class docs) and its radius."""

@@ -1345,4 +1345,6 @@ def _memory_stats(p: PreparedScene) -> dict:
     if p.gather_source is not None:
         photon_bytes += p.gather_source.nbytes()
     return {"memory_photons_bytes": photon_bytes,
-            "memory_records_bytes": p.index.records.nbytes() if p.index else 0}
+            "memory_records_bytes": (p.index.records.nbytes() + sum(
+                4 * dr.width(a) for a in (p.index.packed_head, p.index.packed_body) if a is not None))
+            if p.index else 0}

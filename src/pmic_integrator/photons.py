@@ -200,7 +200,8 @@ class PhotonMap:
                    + (3 if self.irradiance_nodelta is not None else 0)
                    + (3 if self.irradiance_caustic is not None else 0)) + 1 \
             + (1 if self.delta_light is not None else 0)
-        return per * self.count
+        packed = 4 * dr.width(self.packed) if self.packed is not None else 0
+        return per * self.count + packed
 
 
 def _is_specular(flags) -> mi.Bool:
