@@ -112,13 +112,16 @@ def test_bad_cell_size_is_rejected():
         PointGrid.build(mi.Point3f([0.0], [0.0], [0.0]), 0.0)
 
 
+@pytest.mark.parametrize("packed", [False, True])
 @pytest.mark.parametrize("seed", [4, 5])
-def test_ball_grid_matches_brute_force(seed):
+def test_ball_grid_matches_brute_force(seed, packed):
     rng = np.random.default_rng(seed)
     centers = rng.random((400, 3), dtype=np.float32)
     radii = (rng.random(400, dtype=np.float32) ** 3 * 0.3 + 1e-3).astype(np.float32)
     queries = np.concatenate([rng.random((600, 3), dtype=np.float32), centers[:50]], 0)
     grid = BallGrid.build(mi.Point3f(centers.T), mi.Float(radii))
+    if packed:  # (entries read as packets, as the records' lookup grids are at render)
+        assert grid.pack().packed is not None
     c, r, q = mi.Point3f(centers.T), mi.Float(radii), mi.Point3f(queries.T)
 
     def visit(state, index, valid):

@@ -592,17 +592,18 @@ def clamp_to_neighbours(p: mi.Point3f, n: mi.Vector3f, radius: mi.Float, step: f
     sorted_p = dr.gather(mi.Point3f, p, order)
     sorted_n = dr.gather(mi.Vector3f, n, order)
     sorted_r = dr.gather(mi.Float, radius, order)
-    grid = grid.sorted_in_place()
+    # (Entries packed with their normals: the passes read each neighbour as one packet.)
+    grid = grid.sorted_in_place().pack(sorted_n)
     for _ in range(iterations):
         previous = sorted_r
 
-        def visit(bound, index, dist2, valid):
-            ok = valid & (dr.dot(dr.gather(mi.Vector3f, sorted_n, index, valid), sorted_n) > 0)
+        def visit(bound, index, dist2, valid, offset, normal):
+            ok = valid & (dr.dot(normal, sorted_n) > 0)
             neighbour = dr.gather(mi.Float, previous, index, ok) + dr.sqrt(dist2)
             return dr.select(ok, dr.minimum(bound, neighbour), bound)
 
         sorted_r = grid.for_each_neighbor(sorted_p, step, mi.Float(previous), visit,
-                                          label="neighbour_clamping")
+                                          label="neighbour_clamping", with_offset="normal")
         dr.eval(sorted_r)
     out = dr.zeros(mi.Float, dr.width(radius))
     dr.scatter(out, sorted_r, order)
@@ -964,6 +965,9 @@ class RecordIndex:
         self.packed_head = _interleave(head)
         self.packed_body = _interleave(body)
         dr.eval(self.packed_head, self.packed_body)
+        for grid in (self.grid, self.backup_grid):
+            if grid is not None:
+                grid.pack()
         return self
 
     def _require_lookup(self):

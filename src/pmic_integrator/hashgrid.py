@@ -462,6 +462,22 @@ class BallGrid:
     cell: mi.Vector3i  #: cell of each entry, to reject other cells sharing the bucket
     count: int  #: number of balls
     entries: int  #: number of (cell, ball) pairs
+    #: ``cell`` and ``ball`` entry by entry (4 floats' bits each, :meth:`pack`): one
+    #: packet load per visited entry instead of four gathers. Derived; None: unpacked.
+    packed: mi.Float = field(default=None, metadata={"derived": True})
+
+    def pack(self) -> "BallGrid":
+        """Lay the entries out for grids that many queries walk (the records' lookup
+        grids at render). Returns ``self``."""
+        if self.entries and self.packed is None:
+            data = dr.zeros(mi.Float, 4 * self.entries)
+            base = dr.arange(mi.UInt32, self.entries) * 4
+            for j, column in enumerate((self.cell.x, self.cell.y, self.cell.z)):
+                dr.scatter(data, dr.reinterpret_array(mi.Float, mi.Int32(column)), base + j)
+            dr.scatter(data, dr.reinterpret_array(mi.Float, mi.UInt32(self.ball)), base + 3)
+            dr.eval(data)
+            self.packed = data
+        return self
 
     #: Upper bound on cells per axis that one ball may span; a larger ball makes the
     #: grid use bigger cells instead of exploding the entry count.
@@ -537,9 +553,18 @@ class BallGrid:
                 running &= ~finished(state)
             return running
 
+        packed = self.packed
+
         def body(entry, end, active, state):
-            same = dr.all(dr.gather(mi.Vector3i, self.cell, entry) == c)
-            index = dr.gather(mi.UInt32, self.ball, entry, same)
+            if packed is not None:
+                packet = dr.gather(mi.ArrayXf, packed, entry, shape=(4, dr.width(entry)))
+                same = (dr.reinterpret_array(mi.Int32, packet[0]) == c.x) & \
+                    (dr.reinterpret_array(mi.Int32, packet[1]) == c.y) & \
+                    (dr.reinterpret_array(mi.Int32, packet[2]) == c.z)
+                index = dr.select(same, dr.reinterpret_array(mi.UInt32, packet[3]), 0)
+            else:
+                same = dr.all(dr.gather(mi.Vector3i, self.cell, entry) == c)
+                index = dr.gather(mi.UInt32, self.ball, entry, same)
             state = visit(state, index, same)
             return entry + 1, end, active, state
 
