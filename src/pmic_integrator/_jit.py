@@ -52,6 +52,22 @@ def concat(parts, dtype):
     return out
 
 
+def interleave(columns, width: int) -> mi.Float:
+    """Equal-length arrays laid out element by element, ``width`` floats each (the
+    columns first, zeros after; integer columns as the bits of a float, see
+    ``dr.reinterpret_array``): what ``dr.gather(mi.ArrayXf, ..., shape=(width, n))``
+    reads back with packet loads when ``width`` is a power of two."""
+    count = dr.width(columns[0])
+    out = dr.zeros(mi.Float, count * width)
+    base = dr.arange(mi.UInt32, count) * width
+    for j, column in enumerate(columns):
+        if not dr.is_float_v(column):
+            column = dr.reinterpret_array(mi.Float, column)
+        dr.scatter(out, column, base + j)
+    dr.eval(out)
+    return out
+
+
 def scatter_min(target, value, index, active=True) -> None:
     """``target[index] = min(target[index], value)`` by atomics (min is order free).
     Not Dr.Jit's default on the CPU, which reduces into a copy of ``target`` per thread

@@ -27,8 +27,8 @@ from . import streams
 from . import skylight
 from .gather import GatherSource, gather_radiance, stratified_directions
 from . import emission
-from ._jit import (ONE_MINUS_EPSILON, concat, jittered, mean_value, opaque_float, opaque_u32, rng as make_rng,
-                   scatter_min,
+from ._jit import (ONE_MINUS_EPSILON, concat, interleave, jittered, mean_value, opaque_float, opaque_u32,
+                   rng as make_rng, scatter_min,
                    segment_blocked, shading_normal_on_side, surface_offset)
 from .hashgrid import BallGrid, PointGrid
 from .lights import RecordLights
@@ -252,16 +252,6 @@ def block_sum(values, block: int, op: str = "sum"):
 # --------------------------------------------------------------------------------------
 # Ward's error metric and the interpolation weight
 # --------------------------------------------------------------------------------------
-def _interleave(columns) -> mi.Float:
-    """``len(columns)`` arrays of one length as one array, record by record."""
-    count, k = dr.width(columns[0]), len(columns)
-    out = dr.zeros(mi.Float, count * k)
-    base = dr.arange(mi.UInt32, count) * k
-    for j, column in enumerate(columns):
-        dr.scatter(out, mi.Float(column), base + j)
-    return out
-
-
 def ward_error(x: mi.Point3f, n: mi.Vector3f, rec_p: mi.Point3f, rec_n: mi.Vector3f,
                rec_radius: mi.Float) -> mi.Float:
     """ε = |x − xᵢ| / Rᵢ + sqrt(1 − n·nᵢ) (Ward et al. 1988); Ward's weight is 1/ε."""
@@ -961,10 +951,8 @@ class RecordIndex:
             body += [*r.grad_t[c]]
         for c in range(3):
             body += [*dr.cross(r.grad_r[c], rsn)]
-        body += [zero] * (PACKED_BODY - len(body))
-        self.packed_head = _interleave(head)
-        self.packed_body = _interleave(body)
-        dr.eval(self.packed_head, self.packed_body)
+        self.packed_head = interleave(head, PACKED_HEAD)
+        self.packed_body = interleave(body, PACKED_BODY)
         for grid in (self.grid, self.backup_grid):
             if grid is not None:
                 grid.pack()

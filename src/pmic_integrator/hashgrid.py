@@ -26,7 +26,7 @@ from typing import Any, Callable
 import drjit as dr
 import mitsuba as mi
 
-from ._jit import concat, mean_value, opaque_u32, scatter_count
+from ._jit import concat, interleave, mean_value, opaque_u32, scatter_count
 
 #: Cell coordinates are clamped to this range so that a far-away query cannot overflow
 #: the int32 cell arithmetic; entries never live there, so clamped cells find nothing.
@@ -175,18 +175,10 @@ class PackedEntries:
     @staticmethod
     def of(positions: mi.Point3f, keys: mi.UInt32, index: mi.UInt32,
            normals: mi.Vector3f | None = None) -> "PackedEntries":
-        count = dr.width(keys)
-        data = dr.zeros(mi.Float, count * PackedEntries.WIDTH)
-        base = dr.arange(mi.UInt32, count) * PackedEntries.WIDTH
-        columns = [positions.x, positions.y, positions.z,
-                   dr.reinterpret_array(mi.Float, mi.UInt32(keys)),
-                   dr.reinterpret_array(mi.Float, mi.UInt32(index))]
+        columns = [positions.x, positions.y, positions.z, mi.UInt32(keys), mi.UInt32(index)]
         if normals is not None:
             columns += [normals.x, normals.y, normals.z]
-        for j, column in enumerate(columns):
-            dr.scatter(data, mi.Float(column), base + j)
-        dr.eval(data)
-        return PackedEntries(data, normals is not None)
+        return PackedEntries(interleave(columns, PackedEntries.WIDTH), normals is not None)
 
 
 def _scan_cells(cell_start, keys, positions, index_of, cell, cells: int, query, radius2,
@@ -470,13 +462,8 @@ class BallGrid:
         """Lay the entries out for grids that many queries walk (the records' lookup
         grids at render). Returns ``self``."""
         if self.entries and self.packed is None:
-            data = dr.zeros(mi.Float, 4 * self.entries)
-            base = dr.arange(mi.UInt32, self.entries) * 4
-            for j, column in enumerate((self.cell.x, self.cell.y, self.cell.z)):
-                dr.scatter(data, dr.reinterpret_array(mi.Float, mi.Int32(column)), base + j)
-            dr.scatter(data, dr.reinterpret_array(mi.Float, mi.UInt32(self.ball)), base + 3)
-            dr.eval(data)
-            self.packed = data
+            self.packed = interleave([mi.Int32(self.cell.x), mi.Int32(self.cell.y),
+                                      mi.Int32(self.cell.z), mi.UInt32(self.ball)], 4)
         return self
 
     #: Upper bound on cells per axis that one ball may span; a larger ball makes the

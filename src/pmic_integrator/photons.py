@@ -26,7 +26,7 @@ from dataclasses import dataclass, field, replace
 import drjit as dr
 import mitsuba as mi
 
-from ._jit import (ONE_MINUS_EPSILON, concat, opaque_float, opaque_u32, rng as make_rng, scatter_count,
+from ._jit import (ONE_MINUS_EPSILON, concat, interleave, opaque_float, opaque_u32, rng as make_rng, scatter_count,
                    shading_normal_on_side)
 from .bsdfs import dark_side, glossy_beside_diffuse, lobes_separable, sample_lobes_apart
 from .emission import choose_emitter, emission_bounds, sample_emitter_rays
@@ -127,15 +127,8 @@ class PhotonMap:
         flags = mi.UInt32(dr.select(self.specular_path, 1, 0))
         if self.delta_light is not None:
             flags |= mi.UInt32(dr.select(self.delta_light, 2, 0))
-        columns = (self.normal.x, self.normal.y, self.normal.z, *self.power,
-                   dr.reinterpret_array(mi.Float, mi.UInt32(self.depth)),
-                   dr.reinterpret_array(mi.Float, flags))
-        data = dr.zeros(mi.Float, self.count * self.PACKED_WIDTH)
-        base = dr.arange(mi.UInt32, self.count) * self.PACKED_WIDTH
-        for j, column in enumerate(columns):
-            dr.scatter(data, mi.Float(column), base + j)
-        dr.eval(data)
-        self.packed = data
+        columns = [self.normal.x, self.normal.y, self.normal.z, *self.power, mi.UInt32(self.depth), flags]
+        self.packed = interleave(columns, self.PACKED_WIDTH)
         return self
 
     @property
