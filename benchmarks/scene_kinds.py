@@ -3,8 +3,10 @@
 built in code: a room lit through a door ajar from the next room (diffuse floor, and a
 rough-aluminium floor whose glossy lobe fills the caustic map, every surface of
 Mitsuba's principled BSDF as Blender exports them, and every surface rough plastic), a courtyard under a
-constant sky, with and without a sun, and a room lit by a sky through a thin glass pane
-in its window (all of its light caustic).
+constant sky, with and without a sun, a room lit by a sky through a thin glass pane
+in its window (all of its light caustic), the lit room of the door-ajar pair lit by a
+bulb (a point light) and a spot instead (delta lights, which the records leave out),
+and that room with a glass sphere on a table (a caustic under an area light).
 
     python benchmarks/scene_kinds.py                     # 320×240, pmic 16 spp, ~8 minutes
     python benchmarks/scene_kinds.py --scenes courtyard_sun --resolution 160
@@ -71,6 +73,19 @@ def scene_dict(name: str, size):
         d = sb.courtyard(size=size)
     elif name == "courtyard_overcast":
         d = sb.courtyard(size=size, sun=False)
+    elif name == "room_lamps":
+        d = sb.two_rooms(door_width=0.25, size=size, camera_in_lit_room=True)
+        d.pop("light")
+        d["bulb"] = {"type": "point", "position": [-1.5, 0.6, 0.3],
+                     "intensity": {"type": "rgb", "value": [3.0, 3.0, 2.5]}}
+        d["spot"] = {"type": "spot", "intensity": 15.0, "cutoff_angle": 25.0,
+                     "to_world": mi.ScalarTransform4f().look_at(origin=[-0.5, 0.95, -0.5],
+                                                                target=[-1.0, -1.0, 0.0], up=[0, 0, 1])}
+    elif name == "glass_on_table":
+        d = sb.two_rooms(door_width=0.25, size=size, camera_in_lit_room=True)
+        d["table"] = sb._box_part((-1.0, -0.6, 0.0), (0.4, 0.02, 0.4), sb._diffuse((0.6, 0.5, 0.4)))
+        d["glass"] = {"type": "sphere", "center": [-1.0, -0.45, 0.0], "radius": 0.13,
+                      "bsdf": {"type": "dielectric"}}
     elif name == "window_pane":
         d = sb.window_room(size=size)
         d["pane"] = {"type": "rectangle", "bsdf": {"type": "thindielectric"},
@@ -82,7 +97,7 @@ def scene_dict(name: str, size):
 
 
 SCENES = ("door_diffuse", "door_rough_floor", "door_principled", "door_rough_plastic", "courtyard_sun",
-          "courtyard_overcast", "window_pane")
+          "courtyard_overcast", "window_pane", "room_lamps", "glass_on_table")
 REPEATS = 2
 
 
@@ -197,6 +212,17 @@ def main(argv=None):
     args.out.mkdir(parents=True, exist_ok=True)
     stem = args.out / (f"scene_kinds_{size[0]}" + ("_rounds" if args.rounds else ""))
     command = " ".join(["python benchmarks/scene_kinds.py", *(sys.argv[1:] if argv is None else argv)])
+    if set(args.scenes) != set(SCENES) and stem.with_suffix(".json").exists():
+        # A run over some of the scenes replaces their rows and keeps the others'
+        # (each row says which command measured it).
+        kept = json.loads(stem.with_suffix(".json").read_text())
+        for row in kept["rows"]:
+            row.setdefault("command", kept.get("command", ""))
+        for row in rows:
+            row["command"] = command
+        done = {r["scene"] for r in rows}
+        rows = [r for r in kept["rows"] if r["scene"] not in done] + rows
+        rows.sort(key=lambda r: SCENES.index(r["scene"]) if r["scene"] in SCENES else len(SCENES))
     stem.with_suffix(".json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
     how = (f"{args.rounds} alternating rounds, pmic {args.spp} spp and path {args.path_spp} spp; median "
            f"time, mean relMSE" if args.rounds else f"pmic {args.spp} spp, path at equal time")
@@ -210,6 +236,10 @@ def main(argv=None):
                      f"{st['time_precompute']:.2f} / {st['time_cache']:.2f} / {st['time_render']:.2f} | "
                      f"{r['pmic_relmse']:.2e} | {r['pmic_luminance_ratio']:.4f} | {r['path_spp']} | "
                      f"{r['path_relmse']:.2e} | {r['speedup']:.2f} |")
+    others = [r for r in rows if r.get("command", command) != command]
+    if others:
+        lines += ["", "Rows measured by an earlier run (kept by a run over other scenes):", ""]
+        lines += [f"* {r['scene']}: `{r['command']}`" for r in others]
     stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
     print(f"wrote {stem}.json/.md")
 
