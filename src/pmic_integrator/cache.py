@@ -1046,38 +1046,34 @@ class RecordIndex:
                 ob = obstacle_towards(records, index, rp, x, ok)
                 ok &= ~hidden_from(scene, x, n, rp, rn, rr * max_error, ob, lift, ok)
             dx = x - rp
-            if packed is not None:
+            d = None  # (the record's direct light, where kept)
+            if packed is not None:  # (RecordIndex.pack: one packet load)
                 b = dr.gather(mi.ArrayXf, packed, index, ok, shape=(PACKED_BODY, dr.width(index)))
                 ext = [b[c] + dr.dot(mi.Vector3f(b[6 + 3 * c], b[7 + 3 * c], b[8 + 3 * c]), dx)
                        + dr.dot(mi.Vector3f(b[15 + 3 * c], b[16 + 3 * c], b[17 + 3 * c]), shading_n)
                        for c in range(3)]
                 d = mi.Color3f(b[3], b[4], b[5])
-                e_x = dr.maximum(mi.Color3f(*ext), 0.0) + d
-                total = dr.select(ok, total + w * e_x, total)
-                weight_sum = dr.select(ok, weight_sum + w, weight_sum)
-                radius_sum = dr.select(ok, radius_sum + w * rr, radius_sum)
-                if with_direct:
-                    return total, weight_sum, radius_sum, dr.select(ok, direct_sum[0] + w * d, direct_sum[0])
-                return total, weight_sum, radius_sum
-            e = dr.gather(mi.Color3f, r.irradiance, index, ok)
-            # The rotational gradient was gathered about the record's shading normal:
-            # it extrapolates to the query's (the plane and Ward tests above keep the
-            # geometric ones, which say where the surfaces are).
-            rot = dr.cross(dr.gather(mi.Vector3f, record_shading_n, index, ok), shading_n)
-            ext = []
-            for c in range(3):
-                gt = dr.gather(mi.Vector3f, r.grad_t[c], index, ok)
-                gr = dr.gather(mi.Vector3f, r.grad_r[c], index, ok)
-                ext.append(e[c] + dr.dot(gt, dx) + dr.dot(gr, rot))
+            else:
+                e = dr.gather(mi.Color3f, r.irradiance, index, ok)
+                # The rotational gradient was gathered about the record's shading normal:
+                # it extrapolates to the query's (the plane and Ward tests above keep the
+                # geometric ones, which say where the surfaces are).
+                rot = dr.cross(dr.gather(mi.Vector3f, record_shading_n, index, ok), shading_n)
+                ext = []
+                for c in range(3):
+                    gt = dr.gather(mi.Vector3f, r.grad_t[c], index, ok)
+                    gr = dr.gather(mi.Vector3f, r.grad_r[c], index, ok)
+                    ext.append(e[c] + dr.dot(gt, dx) + dr.dot(gr, rot))
+                if direct is not None:
+                    d = dr.gather(mi.Color3f, direct, index, ok)
             e_x = dr.maximum(mi.Color3f(*ext), 0.0)
-            if direct is not None:
-                d = dr.gather(mi.Color3f, direct, index, ok)
+            if d is not None:
                 e_x += d
             total = dr.select(ok, total + w * e_x, total)
             weight_sum = dr.select(ok, weight_sum + w, weight_sum)
             radius_sum = dr.select(ok, radius_sum + w * rr, radius_sum)
             if with_direct:
-                if direct is None:
+                if d is None:
                     return total, weight_sum, radius_sum, direct_sum[0]
                 return total, weight_sum, radius_sum, dr.select(ok, direct_sum[0] + w * d, direct_sum[0])
             return total, weight_sum, radius_sum

@@ -136,28 +136,25 @@ def _visit_entry(keys, positions, index_of, entry, present, key, query, radius2,
     visited cell (``keys`` equal to ``key``) and lies within the squared radius.
     ``positions`` may be :class:`PackedEntries` (then ``keys`` and ``index_of`` are
     read from it: one packet load per entry)."""
-    if isinstance(positions, PackedEntries):
+    packed = isinstance(positions, PackedEntries)
+    if packed:
         packet = dr.gather(mi.ArrayXf, positions.data, entry, present,
                            shape=(PackedEntries.WIDTH, dr.width(entry)))
         same_cell = dr.reinterpret_array(mi.UInt32, packet[3]) == key
-        if present is not True:
-            same_cell &= present
-        d = mi.Point3f(packet[0], packet[1], packet[2]) - query
-        dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
-        valid = same_cell & (dist2 < radius2)
-        index = dr.select(valid, dr.reinterpret_array(mi.UInt32, packet[4]), 0)
-        if with_offset == "normal":
-            # (The visitor reads the point's normal from the entry: PackedEntries.of.)
-            return visit(state, index, dist2, valid, d, mi.Vector3f(packet[5], packet[6], packet[7]))
-        return visit(state, index, dist2, valid, d) if with_offset else visit(state, index, dist2, valid)
-    same_cell = dr.gather(mi.UInt32, keys, entry, present) == key
+    else:
+        same_cell = dr.gather(mi.UInt32, keys, entry, present) == key
     if present is not True:
         same_cell &= present
-    p = dr.gather(mi.Point3f, positions, entry, same_cell)
+    p = mi.Point3f(packet[0], packet[1], packet[2]) if packed else \
+        dr.gather(mi.Point3f, positions, entry, same_cell)
     d = p - query
     dist2 = dr.fma(d.x, d.x, dr.fma(d.y, d.y, d.z * d.z))
     valid = same_cell & (dist2 < radius2)
-    index = index_of(entry, valid)
+    index = dr.select(valid, dr.reinterpret_array(mi.UInt32, packet[4]), 0) if packed else \
+        index_of(entry, valid)
+    if with_offset == "normal":
+        # (The visitor reads the point's normal from the entry: PackedEntries.of.)
+        return visit(state, index, dist2, valid, d, mi.Vector3f(packet[5], packet[6], packet[7]))
     return visit(state, index, dist2, valid, d) if with_offset else visit(state, index, dist2, valid)
 
 
@@ -594,13 +591,14 @@ class PointGridPyramid:
     #: cell key of each level-0 bucket's middle point (``NO_KEY``: empty bucket)
     level0_key: mi.UInt32
     #: ``positions``, ``keys`` and ``index`` entry by entry (:class:`PackedEntries`),
-    #: what queries read (derived: rebuilt, not stored, by :meth:`packed_entries`).
+    #: what queries read (derived: rebuilt, not stored, by :meth:`pack`).
     packed: PackedEntries = field(default=None, metadata={"derived": True})
 
-    def packed_entries(self) -> PackedEntries:
+    def pack(self) -> "PointGridPyramid":
+        """Lay the entries out for the queries (:class:`PackedEntries`). Returns ``self``."""
         if self.packed is None and self.count:
             self.packed = PackedEntries.of(self.positions, self.keys, self.index)
-        return self.packed
+        return self
 
     #: Levels: radius / 2^(LEVELS-1) is the smallest radius used, so a cluster
     #: 4^(LEVELS-1) = 64× denser than the base still costs the same per query.
@@ -669,8 +667,7 @@ class PointGridPyramid:
             keys=dr.gather(mi.UInt32, key, entry_order), count=n,
             level0_start=base.cell_start, level0_mask=base.table_mask, level0_key=level0_key)
         dr.eval(pyramid.index, pyramid.positions, pyramid.keys, pyramid.level0_key)
-        pyramid.packed_entries()
-        return pyramid, order
+        return pyramid.pack(), order
 
     def nbytes(self) -> int:
         packed = 4 * dr.width(self.packed.data) if self.packed is not None else 0

@@ -146,13 +146,22 @@ def _edge_correction(centroid2: mi.Float) -> mi.Float:
     return dr.rcp(dr.maximum(dr.lerp(m0, m1, t), _EDGE_MASS[-1]))
 
 
+def _in_plane(offset, valid, query_n, radius):
+    """``valid``, but for candidates off the query's plane (``offset``: candidate
+    position − query position)."""
+    return valid & (dr.abs(dr.dot(offset, query_n)) < PLANE_TOLERANCE * radius)
+
+
+def _facing(normal, valid, query_n):
+    """``valid``, but for candidates whose ``normal`` is too far from the query's."""
+    return valid & (dr.dot(normal, query_n) > NORMAL_COSINE)
+
+
 def _compatible(photons: PhotonMap, index, offset, valid, query_n, radius):
     """Mask of candidate photons that lie on the query's surface, on its side
     (``offset``: photon position − query position)."""
-    plane = dr.abs(dr.dot(offset, query_n))
-    valid &= plane < PLANE_TOLERANCE * radius
-    n = dr.gather(mi.Vector3f, photons.normal, index, valid)
-    return valid & (dr.dot(n, query_n) > NORMAL_COSINE)
+    valid = _in_plane(offset, valid, query_n, radius)
+    return _facing(dr.gather(mi.Vector3f, photons.normal, index, valid), valid, query_n)
 
 
 def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
@@ -207,62 +216,44 @@ def estimate_irradiance(photons: PhotonMap, grid, query_p: mi.Point3f,
 
     packed = photons.packed
 
-    def visit_packed(state, index, dist2, valid, offset):
+    def read(index, ok):
+        """``(normal, power, depth, specular_path, from a delta light)`` of the photons
+        at ``index`` (zeros where not ``ok``): one packet load where the map is packed
+        (PhotonMap.pack), else a gather per field."""
+        if packed is not None:
+            photon = dr.gather(mi.ArrayXf, packed, index, ok, shape=(PhotonMap.PACKED_WIDTH, dr.width(index)))
+            flags = dr.reinterpret_array(mi.UInt32, photon[7])
+            return (mi.Vector3f(photon[0], photon[1], photon[2]), mi.Color3f(photon[3], photon[4], photon[5]),
+                    dr.reinterpret_array(mi.UInt32, photon[6]), (flags & 1) != 0, (flags & 2) != 0)
+        delta = dr.gather(mi.Bool, photons.delta_light, index, ok) if photons.delta_light is not None \
+            else dr.zeros(mi.Bool, dr.width(index))
+        return (dr.gather(mi.Vector3f, photons.normal, index, ok), dr.gather(mi.Color3f, photons.power, index, ok),
+                dr.gather(mi.UInt32, photons.depth, index, ok),
+                dr.gather(mi.Bool, photons.specular_path, index, ok), delta)
+
+    def visit(state, index, dist2, valid, offset):
         whole = state[:4]
-        plane = dr.abs(dr.dot(offset, query_n))
-        ok = valid & (plane < PLANE_TOLERANCE * radius)
-        photon = dr.gather(mi.ArrayXf, packed, index, ok, shape=(PhotonMap.PACKED_WIDTH, dr.width(index)))
-        ok &= dr.dot(mi.Vector3f(photon[0], photon[1], photon[2]), query_n) > NORMAL_COSINE
-        depth = dr.reinterpret_array(mi.UInt32, photon[6])
-        flags = dr.reinterpret_array(mi.UInt32, photon[7])
+        ok = _in_plane(offset, valid, query_n, radius)
+        normal, power, depth, specular, from_delta = read(index, ok)
+        ok = _facing(normal, ok, query_n)
         if min_depth is not None:
             ok &= depth >= min_depth
         if max_depth is not None:
             ok &= depth <= max_depth
         if skip_specular_paths:
-            ok &= (flags & 1) == 0
-        from_delta = (flags & 2) != 0
+            ok &= ~specular
         if without_delta_direct:
             ok &= ~(from_delta & (depth == 1))
-        power = dr.select(ok, mi.Color3f(photon[3], photon[4], photon[5]), 0.0)
+        power = dr.select(ok, power, 0.0)
         k = dr.square(1.0 - dist2 * inv_r2)
         if narrow_delta:
+            # Kernel of radius s·r for delta lights' photons, normalised to it (1/s²).
             k_delta = dr.square(dr.maximum(1.0 - dist2 * inv_r2 * inv_s2, 0.0)) * inv_s2
             k = dr.select(from_delta & ok, k_delta, k)
         if not nodelta_too:
             return sums(whole, power, k, offset)
-        direct = ok & from_delta & (depth == 1)
-        return sums(whole, power, k, offset) + sums(state[4:], dr.select(direct, 0.0, power), k, offset)
-
-    def visit(state, index, dist2, valid, offset):
-        if packed is not None:
-            return visit_packed(state, index, dist2, valid, offset)
-        whole = state[:4]
-        ok = _compatible(photons, index, offset, valid, query_n, radius)
-        if min_depth is not None or max_depth is not None:
-            depth = dr.gather(mi.UInt32, photons.depth, index, ok)
-            if min_depth is not None:
-                ok &= depth >= min_depth
-            if max_depth is not None:
-                ok &= depth <= max_depth
-        if skip_specular_paths:
-            ok &= ~dr.gather(mi.Bool, photons.specular_path, index, ok)
-        if without_delta_direct:
-            ok &= ~(dr.gather(mi.Bool, photons.delta_light, index, ok) &
-                    (dr.gather(mi.UInt32, photons.depth, index, ok) == 1))
-        # A masked gather reads zero power for rejected photons: no select needed.
-        power = dr.gather(mi.Color3f, photons.power, index, ok)
-        k = dr.square(1.0 - dist2 * inv_r2)
-        if narrow_delta:
-            # Kernel of radius s·r for delta lights' photons, normalised to it (1/s²).
-            from_delta = dr.gather(mi.Bool, photons.delta_light, index, ok)
-            k_delta = dr.square(dr.maximum(1.0 - dist2 * inv_r2 * inv_s2, 0.0)) * inv_s2
-            k = dr.select(from_delta, k_delta, k)
-        if not nodelta_too:
-            return sums(whole, power, k, offset)
         # (A masked-out photon adds 0·k: the same sums as the separate walk.)
-        direct = dr.gather(mi.Bool, photons.delta_light, index, ok) & \
-            (dr.gather(mi.UInt32, photons.depth, index, ok) == 1)
+        direct = ok & from_delta & (depth == 1)
         return sums(whole, power, k, offset) + sums(state[4:], dr.select(direct, 0.0, power), k, offset)
 
     zero = (dr.zeros(mi.Color3f, lanes), dr.zeros(mi.Vector3f, lanes), dr.zeros(mi.Float, lanes),
@@ -399,8 +390,7 @@ def nearest_photon(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
         if normal is None:
             ok = _compatible(photons, index, offset, valid & (dist2 < best_d2), query_n, radius)
         else:  # (the normal read with the grid entry: PointGrid.pack)
-            ok = valid & (dist2 < best_d2) & (dr.abs(dr.dot(offset, query_n)) < PLANE_TOLERANCE * radius) \
-                & (dr.dot(normal, query_n) > NORMAL_COSINE)
+            ok = _facing(normal, _in_plane(offset, valid & (dist2 < best_d2), query_n, radius), query_n)
         closer = ok & (dist2 < best_d2)
         return dr.select(closer, dist2, best_d2), dr.select(closer, index, best)
 

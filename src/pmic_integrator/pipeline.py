@@ -392,7 +392,7 @@ def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
 
 def pack_for_queries(prepared: "PreparedScene") -> "PreparedScene":
     """Lay out the photon maps, their grids and the gather source's grids entry by
-    entry for the queries (:meth:`PhotonMap.pack`, :meth:`PointGridPyramid.packed_entries`,
+    entry for the queries (:meth:`PhotonMap.pack`, :meth:`PointGridPyramid.pack`,
     :meth:`GatherSource.pack`), as a build does; for a prepared scene read from a cache
     file, which does not hold these derived arrays. The records are packed at each
     render (:meth:`RecordIndex.pack`). Returns ``prepared``."""
@@ -400,7 +400,7 @@ def pack_for_queries(prepared: "PreparedScene") -> "PreparedScene":
                           (prepared.caustic_map, prepared.caustic_grid)):
         if photons.count and grid is not None:
             photons.pack()
-            grid.packed_entries()
+            grid.pack()
     if prepared.gather_source is not None:
         prepared.gather_source.pack()
     return prepared
