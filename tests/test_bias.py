@@ -96,13 +96,22 @@ def test_light_through_a_thin_principled_leaf_reaches_the_cache(estimator):
     their side; the principled BSDFs ignore lobe masks, so the lobes cannot be taken
     apart) and lost what it transmits from the light above: the floor and the boxes
     under it came out 13-28 % dark (before: 0.84 of path with first_hit, 0.93 with
-    final_gather)."""
+    final_gather).
+
+    At 40 pixels a handful of records make the first-hit image, and its mean moves
+    with the seed (0.972-1.038 over seeds 0-8, sd 0.025, mean 1.000; on an AVX-512
+    machine seed 0 alone gave 0.99, on an AVX2 one 0.975): the mean over six seeds is
+    tested (sd ~0.01) within 3 % of path; the final gather's within 1.5 % at one."""
     leaf = {"type": "rectangle",
             "to_world": mi.ScalarTransform4f().translate([0, 0.5, 0]).rotate([1, 0, 0], 90).scale(0.6),
             "bsdf": {"type": "principledthin", "base_color": {"type": "rgb", "value": [0.6, 0.8, 0.4]},
                      "diff_trans": 1.0, "roughness": 0.6}}
-    assert ratio_to_path(sb.cornell(size=40, leaf=leaf), spp=64, estimator=estimator) == \
-        pytest.approx(1.0, abs=0.015)
+    scene = mi.load_dict(sb.cornell(size=40, leaf=leaf))
+    reference = path_image(scene)[..., :3] @ LUMINANCE
+    seeds, tolerance = (range(6), 0.03) if estimator == "first_hit" else (range(1), 0.015)
+    ratios = [masked_ratio(render(scene, 64, seed=seed, estimator=estimator)[0][..., :3] @ LUMINANCE,
+                           reference) for seed in seeds]
+    assert np.mean(ratios) == pytest.approx(1.0, abs=tolerance)
 
 
 @pytest.mark.parametrize("roughness, metallic", [(0.5, 0.0), (0.3, 0.5)])
@@ -171,9 +180,19 @@ def test_lamp_room_where_photons_cluster_in_the_shade(estimator, spp):
     of the room gather hits found no photon within the search's reach and read zero
     (before: 0.936 of path, first-hit; see GatherSource). After: 0.980-0.991 over
     render seeds (its cache does not depend on them). The final gather, which reads
-    the cache one bounce later, passed before too: it guards that estimator here."""
-    ratio = ratio_to_path(sb.lamp_room(size=(32, 24)), spp=spp, path_spp=1024, estimator=estimator)
-    assert ratio == pytest.approx(1.0, abs=0.025)
+    the cache one bounce later, passed before too: it guards that estimator here.
+
+    The shade's fireflies make both sides noisy: path at 1024 spp was 1.1 % brighter
+    than at 16384, and over seeds 0-5 (against 16384 spp) the first-hit image ranged
+    0.955-1.040 (mean 0.993), the final gather's 0.980-1.004 (mean 0.989); on an
+    AVX2 machine seed 0 alone failed where it passed on an AVX-512 one. So: path at
+    8192 spp, and the mean over a few seeds (sd of the mean ~0.013 and ~0.005)."""
+    scene = mi.load_dict(sb.lamp_room(size=(32, 24)))
+    reference = path_image(scene, spp=8192)[..., :3] @ LUMINANCE
+    seeds = range(4) if estimator == "first_hit" else range(3)
+    ratios = [masked_ratio(render(scene, spp, seed=seed, estimator=estimator)[0][..., :3] @ LUMINANCE,
+                           reference) for seed in seeds]
+    assert np.mean(ratios) == pytest.approx(1.0, abs=0.025)
 
 
 def test_sun_lights_all_of_a_merged_ground():

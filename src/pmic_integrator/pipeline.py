@@ -587,7 +587,8 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
     position, normal = builder.placement_photons()
     probes = not settings.final_gather_camera
     # With probes to come, visibility is settled once, after them (complete_with_probes).
-    index, rounds = builder.build_records(position, normal, None, settle=not probes)
+    index, rounds = builder.build_records(position, normal, None, settle=not probes,
+                                          gather=not probes)
     stats["placement_rounds"] = rounds
     if probes:
         progress.update("cache", 0.5, f"{index.records.count} records: surface probes")
@@ -701,9 +702,12 @@ class CacheBuilder:
         return (dr.gather(mi.Point3f, cand_p, selected), dr.gather(mi.Vector3f, cand_n, selected),
                 dr.gather(mi.Float, pilot, selected)), rounds
 
-    def build_records(self, cand_p, cand_n, existing: RecordIndex | None, settle: bool = True):
+    def build_records(self, cand_p, cand_n, existing: RecordIndex | None, settle: bool = True,
+                      gather: bool = True):
         """Place records among candidates (Fig. 2), compute them, return the index and
-        the number of placement rounds.
+        the number of placement rounds. Without ``gather`` the new records are placed
+        only (:meth:`CacheRecords.geometry_only`; :meth:`gather_placed` computes them
+        later, all in one gather).
 
         With many candidates the walk visits an evenly spread subset first
         (``PLACEMENT_SUBSET`` of them) and then only the candidates that the subset's
@@ -735,16 +739,26 @@ class CacheBuilder:
         n = concat(new_n, mi.Vector3f)
         r = concat(new_r, mi.Float)
         before = existing.records.count if existing is not None else 0
-        records = cache_mod.compute_records(self.scene, self.prepared.gather_source, p, n, r,
-                                            self.strata,
-                                            self.settings.seed + streams.RECORDS + before, self.offset,
-                                            self.sky_openness)
+        records = self._gather(p, n, r, before) if gather else CacheRecords.geometry_only(p, n, r)
         all_records = existing.records.extend(records) if existing is not None else records
         index = self.index(all_records)
         if settle:
             index, more = self.settle(index, cand_p, cand_n)
             rounds += more
         return index, rounds
+
+    def _gather(self, p, n, r, first: int) -> CacheRecords:
+        """The records at (p, n) of radius r, gathered; ``first``: the index of the
+        first of them in the cache (their random streams follow it)."""
+        return cache_mod.compute_records(self.scene, self.prepared.gather_source, p, n, r,
+                                         self.strata, self.settings.seed + streams.RECORDS + first,
+                                         self.offset, self.sky_openness)
+
+    def gather_placed(self, index: RecordIndex) -> RecordIndex:
+        """``index`` with every record gathered (placed with ``gather=False``): one
+        gather for all, at their final radii."""
+        records = index.records
+        return self.index(self._gather(records.position, records.normal, records.radius, 0))
 
     @property
     def sky_openness(self) -> float:
@@ -803,7 +817,7 @@ class CacheBuilder:
             probe_p = dr.gather(mi.Point3f, probe_p, inside)
             probe_n = dr.gather(mi.Vector3f, probe_n, inside)
         if not dr.width(probe_p.x):
-            return self.settle(index, photon_p, photon_n)[0]
+            return self.settle(self.gather_placed(index), photon_p, photon_n)[0]
         clamp = every_nth(dr.width(probe_p.x), PROBE_CLAMP_STRIDE)
         clamp_p = dr.gather(mi.Point3f, probe_p, clamp)
         clamp_n = dr.gather(mi.Vector3f, probe_n, clamp)
@@ -839,15 +853,15 @@ class CacheBuilder:
             if clamp_pass == PROBE_CLAMP_PASSES - 1:
                 pending_p, pending_n = [lost_p], [lost_n]
             else:
-                index, _ = self.build_records(lost_p, lost_n, index, settle=False)
+                index, _ = self.build_records(lost_p, lost_n, index, settle=False, gather=False)
         uncovered = dr.compress(~index.covered(probe_p, probe_n))
         probe_p = dr.gather(mi.Point3f, probe_p, uncovered)
         probe_n = dr.gather(mi.Vector3f, probe_n, uncovered)
         cand_p = concat(pending_p + [probe_p], mi.Point3f)
         if dr.width(cand_p.x):
             index, _ = self.build_records(cand_p, concat(pending_n + [probe_n], mi.Vector3f),
-                                          index, settle=False)
-        return self.settle(index, concat([photon_p, probe_p], mi.Point3f),
+                                          index, settle=False, gather=False)
+        return self.settle(self.gather_placed(index), concat([photon_p, probe_p], mi.Point3f),
                            concat([photon_n, probe_n], mi.Vector3f))[0]
 
 
