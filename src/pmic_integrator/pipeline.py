@@ -586,7 +586,8 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
     progress.update("cache", 0.05, "placing records at the photons")
     position, normal = builder.placement_photons()
     probes = not settings.final_gather_camera
-    # With probes to come, visibility is settled once, after them (complete_with_probes).
+    # With probes to come, the records are placed only: they are gathered, and their
+    # visibility settled, once, after the probes (complete_with_probes).
     index, rounds = builder.build_records(position, normal, None, settle=not probes,
                                           gather=not probes)
     stats["placement_rounds"] = rounds
@@ -804,7 +805,8 @@ class CacheBuilder:
         probes that no record is near get records (surfaces no photon reached). Every
         photon stays covered. View independent: the same for every camera.
 
-        ``index`` may be unsettled (:meth:`settle`); what this returns is settled."""
+        ``index`` may be unsettled and ungathered (:meth:`settle`, :meth:`gather_placed`);
+        what this returns is both."""
         photons = self.prepared.global_map
         photon_p, photon_n = self.placement_photons()
         probe_p, probe_n = surface_probes(self.scene, _probe_count(photons.count),
