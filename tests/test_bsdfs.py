@@ -10,7 +10,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from pmic_integrator.bsdfs import diffuse_context, diffuse_response
+from pmic_integrator.bsdfs import diffuse_context, diffuse_response, lobes_lean
 
 DIFFUSE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8] * 3}}
 
@@ -77,3 +77,34 @@ def test_diffuse_response_of_the_back_of_a_twosided_surface():
     bsdf = mi.load_dict({"type": "twosided", "bsdf": _normal_map(30, 90)})
     front, back = (0.3, 0.2, 0.93), (0.3, 0.2, -0.93)
     assert _response(bsdf, back) == pytest.approx(_response(bsdf, front), rel=1e-5)
+
+
+@pytest.mark.parametrize("bsdf, leans", [
+    (DIFFUSE, False),
+    ({"type": "plastic"}, False),
+    ({"type": "roughplastic", "alpha": 0.3}, False),
+    ({"type": "twosided", "bsdf": {"type": "roughplastic"}}, False),
+    ({"type": "blendbsdf", "weight": 0.5, "bsdf_0": DIFFUSE, "bsdf_1": {"type": "roughconductor"}}, False),
+    ({"type": "dielectric"}, False),  # (no diffuse lobe: never read)
+    (_normal_map(30, 90), True),
+    ({"type": "twosided", "bsdf": _normal_map(30, 90)}, True),
+    ({"type": "principled", "roughness": 0.5}, True),
+])
+def test_which_lobes_lean(bsdf, leans):
+    """Scenes whose lobes all stand symmetric about the shading normal evaluate the
+    response at one azimuth per level (``bsdfs.lobes_lean``)."""
+    assert lobes_lean(mi.load_dict(bsdf)) is leans
+
+
+@pytest.mark.parametrize("bsdf", [DIFFUSE, {"type": "plastic"}, {"type": "roughplastic", "alpha": 0.3}])
+def test_one_azimuth_serves_lobes_that_do_not_lean(bsdf):
+    bsdf = mi.load_dict(bsdf)
+    si = _interaction(1, (0.3, 0.2, 0.93))
+    one = float(diffuse_response(bsdf, si, True, azimuths=1).x[0])
+    assert one == pytest.approx(float(diffuse_response(bsdf, si, True).x[0]), rel=1e-5)
+
+
+def test_a_tilt_needs_three_azimuths():
+    with pytest.raises(ValueError, match="azimuths"):
+        diffuse_response(mi.load_dict(DIFFUSE), _interaction(1, (0, 0, 1)), True, with_tilt=True,
+                         azimuths=1)

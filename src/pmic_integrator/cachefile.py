@@ -73,7 +73,10 @@ FORMAT = "pmic-cache"
 #: 26: grid pyramids keep an entry's level in three bits of its key (bits 29-31;
 #:     PointGridPyramid.LEVEL_SHIFT): keys stored by 25 would not be found; precomputed
 #:     irradiance is estimated from every path not precomputed (irradiance.precompute_irradiance).
-VERSION = 26
+#: 27: the diffuse response is a 3-level quadrature, at three azimuths where some
+#:     lobe leans (bsdfs.diffuse_response, SceneInfo.has_leaning_lobes,
+#:     GatherSource.leaning): records differ.
+VERSION = 27
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

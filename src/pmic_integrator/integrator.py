@@ -601,6 +601,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         # ...and so do rough plastics (lobes that can be taken apart), see the loop.
         coat_reads = whole_reads and prepared.index is not None
         inseparable_bsdfs = prepared.info.has_inseparable
+        leaning = prepared.info.has_leaning_lobes
         guiding = gather_first and self.settings.guiding and prepared.index is not None and \
             prepared.index.guiding_pays()
         sky_guided = guiding and prepared.sky is not None and prepared.index.sky_guiding_pays()
@@ -724,13 +725,16 @@ class PMICIntegrator(mi.SamplingIntegrator):
                     ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & mi.Bool(use_indirect)
                 inseparable = traced_whole & (traced > 0)
                 inseparable &= near_diffuse(bsdf, si, inseparable, WHOLE_PEAK_RATIO)
-            # The diffuse lobe's response to irradiance, and where the lobe leans (a
-            # normal map's): the cache is read about that normal (read_n), its records'
-            # rotational gradients weighing the incident light as the lobe does. Read
-            # about the surface's own normal, a box of walls whose normal map leant 30°
-            # came out 1-3 % dark or bright, by the light's direction.
-            response, tilt = diffuse_response(bsdf, si, lit_diffuse | inseparable, with_tilt=True)
-            read_n = tilted_normal(shading_n, tilt)
+            # Where the diffuse lobe leans (a normal map's), the cache is read about the
+            # normal it leans to (read_n), the records' rotational gradients weighing
+            # the incident light as the lobe does. Read about the surface's own normal,
+            # a box of walls whose normal map leant 30° came out 1-3 % dark or bright, by
+            # the light's direction. (The response is then taken here, for every lane
+            # that may read; elsewhere below, for those that do.)
+            read_n = mi.Vector3f(shading_n)
+            if dr.hint(leaning, mode="scalar"):
+                response, tilt = diffuse_response(bsdf, si, lit_diffuse | inseparable, with_tilt=True)
+                read_n = tilted_normal(shading_n, tilt)
             if dr.hint(gather_first, mode="scalar"):
                 probe = (cache_ok | inseparable) & (traced > 0)
                 if dr.hint(bounded, mode="scalar"):
@@ -765,7 +769,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
                 read_caustic &= ~(trust & ~covered)  # the photon's irradiance has them
                 if dr.hint(records_hold_caustics, mode="scalar"):
                     read_caustic &= ~trust  # and so do the records
-            response = dr.select(trust | read_caustic, response, 0.0)
+            if dr.hint(leaning, mode="scalar"):
+                response = dr.select(trust | read_caustic, response, 0.0)
+            else:
+                response = diffuse_response(bsdf, si, trust | read_caustic, azimuths=1)
             # A rough plastic read where records reach: its coat too, where the whole
             # BSDF is nearly diffuse for the incident direction (as the principled reads
             # above, WHOLE_PEAK_RATIO), reflects the records' irradiance, and the path

@@ -30,7 +30,7 @@ import numpy as np
 from . import cache as cache_mod, streams
 from .emission import is_delta, scene_bbox  # noqa: F401  (scene_bbox re-exported)
 from ._jit import concat, every_nth, opaque_float, rng as make_rng
-from .bsdfs import glossy_beside_diffuse, ignores_lobe_masks, non_diffuse_context
+from .bsdfs import glossy_beside_diffuse, ignores_lobe_masks, lobes_lean, non_diffuse_context
 from .cache import CacheRecords, RecordIndex
 from .gather import NEAR_HIT_LOOKUPS, VISIBILITY_LIFT, GatherSource
 from .hashgrid import BallGrid, PointGridPyramid
@@ -189,6 +189,10 @@ class SceneInfo:
     #: Some BSDF ignores lobe masks (principled: bsdfs.ignores_lobe_masks): photons,
     #: gathers and camera paths test each vertex for it (bsdfs.lobes_separable).
     has_inseparable: bool = False
+    #: Some BSDF's diffuse response leans off the shading normal (a normal map:
+    #: bsdfs.lobes_lean): responses are evaluated at three azimuths per level, and
+    #: camera paths read the cache about the normal the lobe leans to.
+    has_leaning_lobes: bool = False
 
     @staticmethod
     def of(scene: mi.Scene) -> "SceneInfo":
@@ -214,7 +218,8 @@ class SceneInfo:
         delta = any(is_delta(e) for e in scene.emitters())
         return SceneInfo(diagonal, area, len(scene.emitters()), has_diffuse, has_specular, infinite,
                          delta, has_coat, has_glossy_coat, has_diffuse_transmission,
-                         any(ignores_lobe_masks(bsdf) for bsdf in bsdfs))
+                         any(ignores_lobe_masks(bsdf) for bsdf in bsdfs),
+                         any(lobes_lean(bsdf) for bsdf in bsdfs))
 
 
 @dataclass
@@ -554,6 +559,7 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
         gather_source.caustics_by_gathering = caustic_map.count == 0
         gather_source.crossing = info.has_diffuse_transmission
         gather_source.inseparable = info.has_inseparable
+        gather_source.leaning = info.has_leaning_lobes
         if depth_limit is None:
             gather_source.near_hit_distance = NEAR_HIT_LOOKUPS * global_radius
         if gather_source.photons.count == 0:
