@@ -152,6 +152,25 @@ def lobes_separable(bsdf, si: mi.SurfaceInteraction3f, active) -> mi.Bool:
 MASK_PROBE_LANES = 64
 
 
+def _probe_interactions() -> mi.SurfaceInteraction3f:
+    """:data:`MASK_PROBE_LANES` interactions on a flat surface at which a BSDF is probed
+    once per scene: incident directions spread over the hemisphere, texture
+    coordinates over the unit square."""
+    lanes = MASK_PROBE_LANES
+    k = dr.arange(mi.Float, lanes)
+    u = (k + 0.5) / lanes
+    v = k * 0.6180339887 + 0.5
+    v = v - dr.floor(v)
+    si = dr.zeros(mi.SurfaceInteraction3f, lanes)
+    si.n = mi.Vector3f(0.0, 0.0, 1.0)
+    si.sh_frame = mi.Frame3f(si.n)
+    si.uv = mi.Point2f(u, v)
+    si.wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(v, u))
+    si.dp_du, si.dp_dv = mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0)
+    si.t = 1.0
+    return si
+
+
 def ignores_lobe_masks(bsdf: mi.BSDF) -> bool:
     """Does ``bsdf`` ignore its context's lobe mask anywhere (:func:`lobes_separable`
     false)? Mitsuba's ``principled`` and ``principledthin`` do, by name; any other
@@ -165,19 +184,7 @@ def ignores_lobe_masks(bsdf: mi.BSDF) -> bool:
         return False  # nothing to take apart
     if bsdf.class_name() in ("Principled", "PrincipledThin"):
         return True
-    lanes = MASK_PROBE_LANES
-    k = dr.arange(mi.Float, lanes)
-    u = (k + 0.5) / lanes
-    v = k * 0.6180339887 + 0.5
-    v = v - dr.floor(v)
-    si = dr.zeros(mi.SurfaceInteraction3f, lanes)
-    si.n = mi.Vector3f(0.0, 0.0, 1.0)
-    si.sh_frame = mi.Frame3f(si.n)
-    si.uv = mi.Point2f(u, v)
-    si.wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(v, u))
-    si.dp_du, si.dp_dv = mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0)
-    si.t = 1.0
-    return bool(dr.any(~lobes_separable(bsdf, si, mi.Bool(True))))
+    return bool(dr.any(~lobes_separable(bsdf, _probe_interactions(), mi.Bool(True))))
 
 
 def lobes_lean(bsdf: mi.BSDF) -> bool:
@@ -192,19 +199,7 @@ def lobes_lean(bsdf: mi.BSDF) -> bool:
         return False
     if any(name in str(bsdf) for name in ("NormalMap", "BumpMap", "Principled")):
         return True
-    lanes = MASK_PROBE_LANES
-    k = dr.arange(mi.Float, lanes)
-    u = (k + 0.5) / lanes
-    v = k * 0.6180339887 + 0.5
-    v = v - dr.floor(v)
-    si = dr.zeros(mi.SurfaceInteraction3f, lanes)
-    si.n = mi.Vector3f(0.0, 0.0, 1.0)
-    si.sh_frame = mi.Frame3f(si.n)
-    si.uv = mi.Point2f(u, v)
-    si.wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(v, u))
-    si.dp_du, si.dp_dv = mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0)
-    si.t = 1.0
-    _, tilt = diffuse_response(bsdf, si, mi.Bool(True), with_tilt=True)
+    _, tilt = diffuse_response(bsdf, _probe_interactions(), mi.Bool(True), with_tilt=True)
     return bool(dr.any(dr.any(tilt != 0)))
 
 
