@@ -444,16 +444,16 @@ def test_records_in_a_narrow_slot_hold_its_light(seed):
     assert held.sum() / truth.sum() == pytest.approx(1.0, abs=0.025)
 
 
-@pytest.mark.parametrize("estimator, tolerance", [("first_hit", 0.025), ("final_gather", 0.045)])
+@pytest.mark.parametrize("estimator, tolerance", [("first_hit", 0.025), ("final_gather", 0.035)])
 def test_normal_mapped_walls_reflect_the_cache_at_their_tilted_response(estimator, tolerance):
     """Walls, floor and ceiling under a ``normalmap`` that leans their normal 30° along
     the bitangent. Where a path reads the cache, the diffuse response (1/π ∫ f cos dω)
     was a four-direction quadrature with one azimuth per level, which read such a
     leaning lobe as 0.72 of its value (``tests/test_bsdfs.py``), and the irradiance
     was read about the surface's normal: the box came out 12 % dark (0.88 of path with
-    either estimator). Now first_hit 0.984-0.990, final_gather 0.963-0.971 (seeds
-    0-2): what is left there is the records' direct light, which has no rotational
-    gradient to follow the lean. Real normal maps lean both ways (a wavy one: 0.997)."""
+    either estimator). Now first_hit 0.984-0.990, final_gather 0.975-0.984 (seeds
+    0-2; 0.963-0.971 before the records' direct light had a rotational gradient to
+    follow the lean). Real normal maps lean both ways (a wavy one: 0.997)."""
     texel = (0.5 * np.array([0.0, math.sin(math.radians(30)), math.cos(math.radians(30))]) + 0.5)
     white = {"type": "normalmap", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8] * 3}},
              "normalmap": {"type": "bitmap", "raw": True,

@@ -112,7 +112,8 @@ EVEN_SKY_OPENNESS = 1.0
 #: again the old way; the sums are the same, term for term, either way.
 INTERPOLATION_SLOTS = 8
 #: Floats per record in RecordIndex.pack(): position, normal, radius, nearest hit; then
-#: irradiance, direct light, translational and rotational gradients (24, padded to a
+#: irradiance, direct light, translational and rotational gradients, the direct
+#: light's rotational gradient (27, padded to a
 #: power of two: Dr.Jit reads powers of two as packet loads).
 PACKED_HEAD = 8
 PACKED_BODY = 32
@@ -801,7 +802,8 @@ def guide_cdfs(owner: mi.UInt32, direction: mi.Vector3f, radiance: mi.Color3f, c
 
 def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f, samples: int,
                       seed: int, offset: float, shading_normal: mi.Vector3f = None,
-                      split: bool = False, sky=None, guides: "RecordIndex | None" = None):
+                      split: bool = False, sky=None, guides: "RecordIndex | None" = None,
+                      rotation: bool = False):
     """Irradiance straight from the emitters at each (position, normal): the mean of
     ``samples`` emitter samples with shadow rays (Mitsuba's emitter importance
     sampling, from jittered strata: :data:`RECORD_DIRECT_SAMPLES`), each non-finite
@@ -817,10 +819,13 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
     that are not delta lights, and each delta light (a sun, a spot) gets one sample of
     its own (up to ``samples`` of them, in strata of the choice): one sample of a delta
     light is exact up to visibility, and a choice among all lights spent half of a
-    sunlit sky's samples on the same shadow ray to the sun."""
+    sunlit sky's samples on the same shadow ray to the sun.
+
+    With ``rotation``, each part comes with its rotational gradient (of the mean of its
+    channels, a Vector3f: ∫ L (n × ω) dω from the same samples): ``(E, ∇ᵣ)``."""
     kinds = [(delta, n) for delta, n in ((False, samples), (True, min(samples, len(emission.emitter_subset(scene, True)))))
              if n and emission.emitter_subset(scene, delta)]
-    soft = delta = mi.Color3f(0.0)
+    soft = delta = (mi.Color3f(0.0), mi.Vector3f(0.0))
     for kind, count in kinds:
         part = _direct_irradiance_of(scene, position, normal, count, seed, offset, shading_normal,
                                      sky, kind, guides)
@@ -828,15 +833,17 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
             delta = part
         else:
             soft = part
+    if not rotation:
+        soft, delta = soft[0], delta[0]
     if not split:
-        return soft + delta
+        return soft + delta if not rotation else (soft[0] + delta[0], soft[1] + delta[1])
     return soft, delta
 
 
 def _direct_irradiance_of(scene, position, normal, samples: int, seed: int, offset: float,
-                          shading_normal, sky, delta: bool, guides=None) -> mi.Color3f:
+                          shading_normal, sky, delta: bool, guides=None):
     """:func:`direct_irradiance` from the delta lights only (``delta``) or from the
-    others only."""
+    others only, with its rotational gradient: ``(E, ∇ᵣ)``."""
     count = dr.width(position)
     lanes = count * samples
     owner = dr.arange(mi.UInt32, lanes) // opaque_u32(samples)
@@ -860,9 +867,25 @@ def _direct_irradiance_of(scene, position, normal, samples: int, seed: int, offs
             guide = skylight.SkyGuide(guides, owner, fraction)
         ds, weight = skylight.sample_emitter_direction(scene, sky, ref, cos_n, u, guide=guide,
                                                        delta=False)
-    e = weight * dr.maximum(dr.dot(ds.d, cos_n), 0.0)
-    e = dr.select((ds.pdf > 0) & dr.all(dr.isfinite(e)), e, 0.0)
-    return mi.Color3f(block_sum(mi.Color3f(e), samples)) / samples
+    cosine = dr.dot(ds.d, cos_n)
+    e = weight * dr.maximum(cosine, 0.0)
+    counted = (ds.pdf > 0) & dr.all(dr.isfinite(e))
+    e = dr.select(counted, e, 0.0)
+    # The rotational gradient's sample: L/pdf (n × ω), of the channels' mean, where
+    # the light is above the surface (as the cosine above).
+    mean_weight = (weight.x + weight.y + weight.z) * (1.0 / 3.0)
+    g = dr.select(counted & (cosine > 0) & dr.isfinite(mean_weight),
+                  mean_weight * dr.cross(cos_n, ds.d), 0.0)
+    return (mi.Color3f(block_sum(mi.Color3f(e), samples)) / samples,
+            mi.Vector3f(block_sum(mi.Vector3f(g), samples)) / samples)
+
+
+def _rotated_direct(direct: mi.Color3f, shift: mi.Float) -> mi.Color3f:
+    """A record's direct light extrapolated by ``shift`` (its rotational gradient times
+    the rotation to the point's shading normal), spread over the channels as the light
+    is; never negative."""
+    mean = (direct.x + direct.y + direct.z) * (1.0 / 3.0)
+    return direct * dr.maximum(1.0 + shift / dr.maximum(mean, 1e-30), 0.0)
 
 
 # --------------------------------------------------------------------------------------
@@ -885,6 +908,11 @@ class RecordIndex:
     #: lights, environments); the camera path samples delta lights itself, whose sharp
     #: shadows records would smear. None: not kept.
     direct: mi.Color3f = None
+    #: The rotational gradient of ``direct``'s light from the emitters (of its channels'
+    #: mean, about the record's shading normal): interpolation extrapolates ``direct``
+    #: to the shading normal of the point read (a normal map's lean, a curved mesh), as
+    #: it does the gathered light. None: not kept.
+    direct_rotation: mi.Vector3f = None
     #: ``direct`` holds the caustic map's irradiance at each record too (light that
     #: reached the record through delta/glossy bounces): readers need no caustic lookup.
     holds_caustics: bool = False
@@ -923,6 +951,7 @@ class RecordIndex:
             return self
         index = RecordIndex.build(self.records, self.max_error, self.scene, self.lift)
         index.direct = self.direct
+        index.direct_rotation = self.direct_rotation
         index.direct_all = self.direct_all
         index.holds_caustics = self.holds_caustics
         index.lights = self.lights
@@ -951,6 +980,8 @@ class RecordIndex:
             body += [*r.grad_t[c]]
         for c in range(3):
             body += [*dr.cross(r.grad_r[c], rsn)]
+        if self.direct_rotation is not None:
+            body += [*dr.cross(self.direct_rotation, rsn)]
         self.packed_head = interleave(head, PACKED_HEAD)
         self.packed_body = interleave(body, PACKED_BODY)
         for grid in (self.grid, self.backup_grid):
@@ -1033,6 +1064,7 @@ class RecordIndex:
         record_shading_n = r.shading_normal if r.shading_normal is not None else r.normal
         visibility = self._visibility()
         direct = self.direct
+        direct_rotation = self.direct_rotation if direct is not None else None
         packed = self.packed_body
 
         def visit(state, index, valid):
@@ -1053,6 +1085,8 @@ class RecordIndex:
                        + dr.dot(mi.Vector3f(b[15 + 3 * c], b[16 + 3 * c], b[17 + 3 * c]), shading_n)
                        for c in range(3)]
                 d = mi.Color3f(b[3], b[4], b[5])
+                if direct_rotation is not None:
+                    d = _rotated_direct(d, dr.dot(mi.Vector3f(b[24], b[25], b[26]), shading_n))
             else:
                 e = dr.gather(mi.Color3f, r.irradiance, index, ok)
                 # The rotational gradient was gathered about the record's shading normal:
@@ -1066,6 +1100,9 @@ class RecordIndex:
                     ext.append(e[c] + dr.dot(gt, dx) + dr.dot(gr, rot))
                 if direct is not None:
                     d = dr.gather(mi.Color3f, direct, index, ok)
+                    if direct_rotation is not None:
+                        d = _rotated_direct(d, dr.dot(dr.gather(mi.Vector3f, direct_rotation, index, ok),
+                                                      rot))
             e_x = dr.maximum(mi.Color3f(*ext), 0.0)
             if d is not None:
                 e_x += d

@@ -76,7 +76,8 @@ FORMAT = "pmic-cache"
 #: 27: the diffuse response is a 3-level quadrature, at three azimuths where some
 #:     lobe leans (bsdfs.diffuse_response, SceneInfo.has_leaning_lobes,
 #:     GatherSource.leaning): records differ.
-VERSION = 27
+#: 28: records keep their direct light's rotational gradient (RecordIndex.direct_rotation).
+VERSION = 28
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

@@ -613,15 +613,17 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
         # shadows they lit the floor round a sunlit patch 11-15 % too bright (over the
         # floor, by where photons put records: ±1.5 % on a whole room from one photon
         # seed to the next); the camera path samples them where it reads the cache.
-        soft, delta = cache_mod.direct_irradiance(
+        (soft, soft_rotation), (delta, delta_rotation) = cache_mod.direct_irradiance(
             scene, index.records.position, index.records.normal, cache_mod.RECORD_DIRECT_SAMPLES,
             settings.seed, prepared.ray_offset, shading_normal=index.records.shading_normal,
-            split=True, sky=prepared.sky, guides=index)
+            split=True, sky=prepared.sky, guides=index, rotation=True)
         if prepared.info.has_delta_emitter:
             index.direct, index.direct_all = soft, soft + delta
+            index.direct_rotation = soft_rotation
             dr.eval(index.direct_all)
         else:
             index.direct = soft + delta
+            index.direct_rotation = soft_rotation + delta_rotation
         if not settings.bounded and prepared.caustic_map.count:
             # And their caustics, so that camera paths read the caustic map at their
             # traced vertex only, not again where they read the cache: every diffuse
@@ -633,7 +635,7 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
                 prepared.caustic_map, prepared.caustic_grid, index.records.position,
                 index.records.normal, prepared.caustic_radius, delta_scale=prepared.caustic_delta_scale)
             index.holds_caustics = True
-        dr.eval(index.direct)
+        dr.eval(index.direct, index.direct_rotation)
         if two_rounds and index.guiding_pays():
             progress.update("cache", 0.8, f"{index.records.count} records: the rest of their gathers")
             index = builder.complete_gathers(index)
