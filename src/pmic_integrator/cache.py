@@ -885,7 +885,8 @@ def _rotated_direct(direct: mi.Color3f, shift: mi.Float) -> mi.Color3f:
     the rotation to the point's shading normal), spread over the channels as the light
     is; never negative."""
     mean = (direct.x + direct.y + direct.z) * (1.0 / 3.0)
-    return direct * dr.maximum(1.0 + shift / dr.maximum(mean, 1e-30), 0.0)
+    factor = dr.select(mean > 0, dr.maximum(1.0 + shift / dr.maximum(mean, 1e-30), 0.0), 1.0)
+    return direct * dr.select(dr.isfinite(factor), factor, 1.0)
 
 
 # --------------------------------------------------------------------------------------
