@@ -470,11 +470,14 @@ def test_a_record_reaching_just_past_a_wall_its_gather_met_late_is_tested(monkey
     assert traced >= 1
 
 
-def test_a_record_tests_visibility_only_towards_what_its_gather_met(monkeypatch):
+@pytest.mark.parametrize("packed", [False, True])
+def test_a_record_tests_visibility_only_towards_what_its_gather_met(packed, monkeypatch):
     """The record beside the thin wall with its gather's nearest hit per azimuth sector
     (cache.obstacle_sectors, from real rays): points away from the wall, farther than
     the wall is, need no shadow ray (the record's one nearest hit made each of them
-    trace one); points across the wall still do, and are not read."""
+    trace one); points across the wall still do, and are not read. ``packed``: read as
+    renders read (RecordIndex.pack: the sectors as one packet, the frame from the
+    body)."""
     from pmic_integrator import streams
 
     index = _thin_wall_index()
@@ -489,6 +492,8 @@ def test_a_record_tests_visibility_only_towards_what_its_gather_met(monkeypatch)
     assert np.sort(sectors)[cache.OBSTACLE_SECTORS // 2] > 1.0
     index.records.obstacle_sectors = mi.Float(sectors)
     index.records.shading_normal = mi.Vector3f(n)
+    if packed:
+        index = index.for_lookup().pack()
     away = [[-0.45, 0.1, 0.0], [-0.4, -0.2, 0.0]]
     e, covered, traced = _interpolate_counting_shadow_rays(index, away, monkeypatch)
     assert covered.all() and np.allclose(e, 1.2, rtol=1e-5)
@@ -529,3 +534,48 @@ def test_blending_a_second_gather_weighs_it_by_its_rays():
     assert np.all(cdf[:, -1] == 1.0)
     empty = records([0.0] * 3, ["none"] * 3, [1.0] * 3).blend(records([0.0] * 3, ["none"] * 3, [1.0] * 3), 0.5)
     assert not np.array(empty.guide).any()
+
+
+def test_obstacle_sectors_are_the_azimuth_octants():
+    """_obstacle_sector (comparisons, no atan2) puts every direction in the sector
+    floor(φ / 45°), φ = atan2(y, x) in [0, 2π), away from the sector edges; and the
+    nearest hit towards a point is the least of its sector and the two beside it."""
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(20000, 3)).astype(np.float32)
+    phi = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
+    want = np.floor(phi / (np.pi / 4)).astype(int)
+    clear = np.abs(phi / (np.pi / 4) - np.round(phi / (np.pi / 4))) > 1e-4
+    got = np.array(cache._obstacle_sector(mi.Vector3f(d.T)))
+    assert got.min() >= 0 and got.max() <= 7
+    np.testing.assert_array_equal(got[clear], want[clear])
+    axes = mi.Vector3f([1.0, 1.0, 0.0, -1.0, -1.0, -1.0, 0.0, 1.0], [0.0, 1.0, 1.0, 1.0, 0.0, -1.0, -1.0, -1.0], 0.0)
+    assert np.array(cache._obstacle_sector(axes)).tolist() == list(range(8))
+    sectors = [8.0, 1.0, 7.0, 6.0, 5.0, 4.0, 3.0, 2.0]
+    nearest = cache._nearest_of_sectors([mi.Float(v) for v in sectors], mi.UInt32(list(range(8))))
+    assert np.array(nearest).tolist() == [1.0, 1.0, 1.0, 5.0, 4.0, 3.0, 2.0, 2.0]
+
+
+@pytest.mark.parametrize("packed", [False, True])
+def test_records_direct_light_follows_its_rotational_gradient(packed):
+    """A record's direct light extrapolates to the shading normal read: by
+    1 + (g × n_rec)·n_s / mean(D) of its channels' mean, never below zero, and by 1
+    where the record has no direct light (packed: the gradient stored relative to D)."""
+    zeros = dr.zeros(mi.Vector3f, 2)
+    records = CacheRecords(mi.Point3f([0.0, 5.0], [0.0, 0.0], [0.0, 0.0]),
+                           mi.Vector3f([0.0, 0.0], [0.0, 0.0], [1.0, 1.0]), mi.Float([1.0, 1.0]),
+                           dr.zeros(mi.Color3f, 2), (zeros,) * 3, (zeros,) * 3)
+    index = RecordIndex.build(records, 0.5)
+    index.direct = mi.Color3f([1.0, 0.0], [2.0, 0.0], [3.0, 0.0])
+    index.direct_rotation = mi.Vector3f([0.0, 0.0], [0.5, 0.5], [0.0, 0.0])  # g × z = (0.5, 0, 0)
+    if packed:
+        index.pack()
+    shading = [[0.6, 0.0, 0.8], [-1.0, 0.0, 0.0], [0.6, 0.0, 0.8]]
+    x = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [5.0, 0.0, 0.0]]
+    e, covered = index.interpolate(mi.Point3f(np.array(x, np.float32).T), mi.Vector3f(0.0, 0.0, 1.0),
+                                   shading_n=mi.Vector3f(np.array(shading, np.float32).T))
+    e = np.array(e).T
+    assert np.array(covered).tolist() == [True, True, True]
+    # mean D = 2: 1 + 0.5 * 0.6 / 2 = 1.15; turned away: 1 - 0.5 / 2 = 0.75; no light: 0
+    np.testing.assert_allclose(e[0], [1.15, 2.3, 3.45], rtol=1e-5)
+    np.testing.assert_allclose(e[1], [0.75, 1.5, 2.25], rtol=1e-5)
+    np.testing.assert_array_equal(e[2], [0.0, 0.0, 0.0])
