@@ -424,3 +424,20 @@ def test_pass_counts_split_a_wavefront_at_the_bound():
     assert camera.pass_counts(film, 7) == [7]
     assert camera.pass_counts(film, 7, max_wavefront=300) == [3, 3, 1]
     assert camera.pass_counts(film, 7, max_wavefront=50) == [1] * 7  # at least one per pixel
+
+
+def test_participating_media_are_ignored_with_a_warning():
+    """pmic renders surfaces only, as Mitsuba's path does: a shape holding a medium
+    (behind a null BSDF) gives the image without it, and a warning that names the
+    shape; a scene without media gives none."""
+    import warnings
+
+    d = small_cornell()
+    d["fog"] = {"type": "sphere", "center": [0.3, -0.3, 0.2], "radius": 0.35, "bsdf": {"type": "null"},
+                "interior": {"type": "homogeneous", "sigma_t": 2.0, "albedo": 0.5}}
+    with pytest.warns(RuntimeWarning, match="participating media of shape 'fog'"):
+        image = np.array(mi.render(mi.load_dict(d), spp=2))
+    assert np.isfinite(image).all() and image.mean() > 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        mi.render(mi.load_dict(small_cornell()), spp=1)

@@ -265,7 +265,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
          - Seed of photon tracing and gathering (0 to 2^32-1): the same seed gives the
            same cache.
 
-    **What it does not do**: participating media are ignored (surfaces only);
+    **What it does not do**: participating media are ignored (surfaces only, as ``path``
+    does; a warning names the shapes and sensors that hold them);
     a bounded ``max_depth`` (under 64) holds where camera paths read the cache and the
     photon maps (the records at the one depth they are made for, the maps by depth), but
     gather rays through delta/glossy chains may add a segment or two to what they read,

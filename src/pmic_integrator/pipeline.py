@@ -21,6 +21,7 @@ import math
 import re
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import drjit as dr
@@ -340,6 +341,21 @@ def check_environment_maps(scene: mi.Scene) -> None:
                              f"(replace them, e.g. with numpy.nan_to_num, before loading)")
 
 
+def warn_of_media(scene: mi.Scene) -> None:
+    """Warn once per scene that participating media are ignored: pmic renders surfaces
+    only, as Mitsuba's ``path`` does (a shape's ``interior``/``exterior`` medium, a
+    sensor's ``medium``); the image is that of the scene without them."""
+    holders = [f"shape {shape.id() or shape.class_name()!r}" for shape in scene.shapes()
+               if shape.interior_medium() is not None or shape.exterior_medium() is not None]
+    holders += [f"sensor {sensor.id() or sensor.class_name()!r}" for sensor in scene.sensors()
+                if any(key.startswith("medium.") for key in mi.traverse(sensor).keys())]
+    if holders:
+        more = f" and {len(holders) - 3} more" if len(holders) > 3 else ""
+        warnings.warn(f"pmic renders surfaces only: the participating media of {', '.join(holders[:3])}{more} "
+                      f"are ignored, as Mitsuba's path ignores them (render media with 'volpath')",
+                      RuntimeWarning, stacklevel=4)
+
+
 # ----------------------------------------------------------------------------------------
 # The pipeline
 # ----------------------------------------------------------------------------------------
@@ -353,6 +369,7 @@ def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
     info = SceneInfo.of(scene)
     check_against_scene(settings, info.surface_area, info.diagonal)
     check_environment_maps(scene)
+    warn_of_media(scene)
     stats = {}
     need_global, need_caustic, skipped = plan_passes(info, settings)
 
