@@ -346,23 +346,17 @@ def _nearest_of_sectors(sectors, sector: mi.UInt32) -> mi.Float:
 def obstacle_towards(records: "CacheRecords", index: mi.UInt32, rec_p: mi.Point3f, x: mi.Point3f,
                      active, frame_normal: mi.Vector3f = None) -> mi.Float:
     """How far record ``index`` saw nothing in the direction of ``x``: its nearest hit
-    in x's azimuth sector and the two beside it (``obstacle_sectors``), else its one
-    nearest hit. ``frame_normal``: the record's shading normal, where the caller has
-    read it (:meth:`RecordIndex.pack`); the sectors are then read as one packet."""
+    in x's azimuth sector and the two beside it (``obstacle_sectors``, read as one
+    packet), else its one nearest hit. ``frame_normal``: the record's shading normal,
+    where the caller has read it already (:meth:`RecordIndex.pack`)."""
     if records.obstacle_sectors is None:
         return dr.gather(mi.Float, records.obstacle, index, active)
-    if frame_normal is not None:
-        sectors = dr.gather(mi.ArrayXf, records.obstacle_sectors, index, active,
-                            shape=(OBSTACLE_SECTORS, dr.width(index)))
-        return _nearest_of_sectors(sectors, _obstacle_sector(_frame(frame_normal).to_local(x - rec_p)))
-    frame_n = records.shading_normal if records.shading_normal is not None else records.normal
-    sector = _obstacle_sector(_frame(dr.gather(mi.Vector3f, frame_n, index, active)).to_local(x - rec_p))
-    base = index * OBSTACLE_SECTORS
-    nearest = dr.gather(mi.Float, records.obstacle_sectors, base + sector, active)
-    for side in (1, OBSTACLE_SECTORS - 1):
-        nearest = dr.minimum(nearest, dr.gather(mi.Float, records.obstacle_sectors,
-                                                base + (sector + side) % OBSTACLE_SECTORS, active))
-    return nearest
+    if frame_normal is None:
+        frame_n = records.shading_normal if records.shading_normal is not None else records.normal
+        frame_normal = dr.gather(mi.Vector3f, frame_n, index, active)
+    sectors = dr.gather(mi.ArrayXf, records.obstacle_sectors, index, active,
+                        shape=(OBSTACLE_SECTORS, dr.width(index)))
+    return _nearest_of_sectors(sectors, _obstacle_sector(_frame(frame_normal).to_local(x - rec_p)))
 
 
 def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active) -> mi.Bool:
@@ -901,13 +895,14 @@ def _direct_irradiance_of(scene, position, normal, samples: int, seed: int, offs
             mi.Vector3f(block_sum(mi.Vector3f(g), samples)) / samples)
 
 
-def _rotated_direct(direct: mi.Color3f, shift: mi.Float) -> mi.Color3f:
-    """A record's direct light extrapolated by ``shift`` (its rotational gradient times
-    the rotation to the point's shading normal), spread over the channels as the light
-    is; never negative."""
+def _relative_rotation(direct: mi.Color3f, gradient: mi.Vector3f) -> mi.Vector3f:
+    """A record's direct-light rotational ``gradient`` over the mean of its ``direct``
+    light's channels (0 where it has no light or the ratio is not finite): the light
+    read at a rotation δ is ``direct · max(0, 1 + relative · δ)``, spread over the
+    channels as the light is, never negative."""
     mean = (direct.x + direct.y + direct.z) * (1.0 / 3.0)
-    factor = dr.select(mean > 0, dr.maximum(1.0 + shift / dr.maximum(mean, 1e-30), 0.0), 1.0)
-    return direct * dr.select(dr.isfinite(factor), factor, 1.0)
+    relative = gradient / dr.maximum(mean, 1e-30)
+    return dr.select((mean > 0) & dr.all(dr.isfinite(relative)), relative, 0.0)
 
 
 # --------------------------------------------------------------------------------------
@@ -1002,13 +997,10 @@ class RecordIndex:
             body += [*r.grad_t[c]]
         for c in range(3):
             body += [*dr.cross(r.grad_r[c], rsn)]
-        # The direct light's rotational gradient relative to its mean (0 where it has
-        # none), so that a lookup scales by max(0, 1 + q·n) without a division.
-        relative = mi.Vector3f(zero)
-        if self.direct_rotation is not None:
-            mean = (direct.x + direct.y + direct.z) * (1.0 / 3.0)
-            relative = dr.cross(self.direct_rotation, rsn) / dr.maximum(mean, 1e-30)
-            relative = dr.select((mean > 0) & dr.all(dr.isfinite(relative)), relative, 0.0)
+        # The direct light's rotational gradient relative to it, so that a lookup
+        # scales by max(0, 1 + q·n) without a division.
+        relative = mi.Vector3f(zero) if self.direct_rotation is None else \
+            _relative_rotation(direct, dr.cross(self.direct_rotation, rsn))
         body += [*relative, *rsn]
         self.packed_head = interleave(head, PACKED_HEAD)
         self.packed_body = interleave(body, PACKED_BODY)
@@ -1134,8 +1126,8 @@ class RecordIndex:
                 if direct is not None:
                     d = dr.gather(mi.Color3f, direct, index, ok)
                     if direct_rotation is not None:
-                        d = _rotated_direct(d, dr.dot(dr.gather(mi.Vector3f, direct_rotation, index, ok),
-                                                      rot))
+                        relative = _relative_rotation(d, dr.gather(mi.Vector3f, direct_rotation, index, ok))
+                        d *= dr.maximum(1.0 + dr.dot(relative, rot), 0.0)
             e_x = dr.maximum(mi.Color3f(*ext), 0.0)
             if d is not None:
                 e_x += d
