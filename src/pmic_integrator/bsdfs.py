@@ -35,6 +35,14 @@ RESPONSE_LEVELS = 3
 RESPONSE_AZIMUTHS = 3
 
 
+def response_azimuths(leaning: bool) -> int:
+    """Azimuths per level of :func:`diffuse_response` in a scene where some lobe leans
+    (``leaning``: :func:`lobes_lean`) or none does: :data:`RESPONSE_AZIMUTHS`, or one
+    (exact for lobes symmetric about the shading normal). The camera path and the
+    gather rays ask it alike."""
+    return RESPONSE_AZIMUTHS if leaning else 1
+
+
 def _gauss_legendre_unit(count: int):
     """Nodes and weights of ``count``-point Gauss-Legendre quadrature on [0, 1]."""
     nodes, weights = np.polynomial.legendre.leggauss(count)

@@ -816,15 +816,28 @@ def guide_cdfs(owner: mi.UInt32, direction: mi.Vector3f, radiance: mi.Color3f, c
 
 
 def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f, samples: int,
-                      seed: int, offset: float, shading_normal: mi.Vector3f = None,
-                      split: bool = False, sky=None, guides: "RecordIndex | None" = None,
-                      rotation: bool = False):
-    """Irradiance straight from the emitters at each (position, normal): the mean of
-    ``samples`` emitter samples with shadow rays (Mitsuba's emitter importance
-    sampling, from jittered strata: :data:`RECORD_DIRECT_SAMPLES`), each non-finite
-    sample counted as 0. The cosine is to
-    ``shading_normal`` where given (as Mitsuba's BSDFs weigh light). With ``split``,
-    ``(from lights that are not delta, from delta lights)``. With ``sky`` (a
+                      seed: int, offset: float, shading_normal: mi.Vector3f = None, sky=None,
+                      guides: "RecordIndex | None" = None) -> mi.Color3f:
+    """Irradiance straight from the emitters at each (position, normal), from every
+    light: the sum of :func:`direct_irradiance_parts`' two parts (same arguments)."""
+    (soft, _), (delta, _) = direct_irradiance_parts(scene, position, normal, samples, seed, offset,
+                                                    shading_normal, sky, guides)
+    return soft + delta
+
+
+def direct_irradiance_parts(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f,
+                            samples: int, seed: int, offset: float,
+                            shading_normal: mi.Vector3f = None, sky=None,
+                            guides: "RecordIndex | None" = None):
+    """Irradiance straight from the emitters at each (position, normal), in two parts,
+    each with its rotational gradient (of the mean of its channels: ∫ L (n × ω) dω from
+    the same samples): ``((E, ∇ᵣE) from lights that are not delta, (E, ∇ᵣE) from delta
+    lights)``; a part without lights is zero.
+
+    Each is the mean of ``samples`` emitter samples with shadow rays (Mitsuba's emitter
+    importance sampling, from jittered strata: :data:`RECORD_DIRECT_SAMPLES`), each
+    non-finite sample counted as 0. The cosine is to ``shading_normal`` where given (as
+    Mitsuba's BSDFs weigh light). With ``sky`` (a
     :class:`~pmic_integrator.skylight.SkySampler`), an environment is sampled by its
     radiance times the cosine. With ``guides`` (the index of these very records, one
     per position), :data:`RECORD_SKY_GUIDE_FRACTION` of the sky's samples at a record
@@ -834,10 +847,7 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
     that are not delta lights, and each delta light (a sun, a spot) gets one sample of
     its own (up to ``samples`` of them, in strata of the choice): one sample of a delta
     light is exact up to visibility, and a choice among all lights spent half of a
-    sunlit sky's samples on the same shadow ray to the sun.
-
-    With ``rotation``, each part comes with its rotational gradient (of the mean of its
-    channels, a Vector3f: ∫ L (n × ω) dω from the same samples): ``(E, ∇ᵣ)``."""
+    sunlit sky's samples on the same shadow ray to the sun."""
     kinds = [(delta, n) for delta, n in ((False, samples), (True, min(samples, len(emission.emitter_subset(scene, True)))))
              if n and emission.emitter_subset(scene, delta)]
     soft = delta = (mi.Color3f(0.0), mi.Vector3f(0.0))
@@ -848,17 +858,13 @@ def direct_irradiance(scene: mi.Scene, position: mi.Point3f, normal: mi.Vector3f
             delta = part
         else:
             soft = part
-    if not rotation:
-        soft, delta = soft[0], delta[0]
-    if not split:
-        return soft + delta if not rotation else (soft[0] + delta[0], soft[1] + delta[1])
     return soft, delta
 
 
 def _direct_irradiance_of(scene, position, normal, samples: int, seed: int, offset: float,
                           shading_normal, sky, delta: bool, guides=None):
-    """:func:`direct_irradiance` from the delta lights only (``delta``) or from the
-    others only, with its rotational gradient: ``(E, ∇ᵣ)``."""
+    """:func:`direct_irradiance_parts`' part from the delta lights only (``delta``) or
+    from the others only, with its rotational gradient: ``(E, ∇ᵣE)``."""
     count = dr.width(position)
     lanes = count * samples
     owner = dr.arange(mi.UInt32, lanes) // opaque_u32(samples)

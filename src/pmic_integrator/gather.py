@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .bsdfs import (RESPONSE_AZIMUTHS, diffuse_response, lobes_separable,  # noqa: F401
-                    non_diffuse_context)
+from .bsdfs import (diffuse_response, lobes_separable,  # noqa: F401
+                    non_diffuse_context, response_azimuths)
 from ._jit import concat, opaque_float, opaque_u32, segment_blocked, shading_normal_on_side
 from .emission import sample_emitter_direction
 from .hashgrid import PointGrid
@@ -139,7 +139,7 @@ class GatherSource:
     #: Some BSDF ignores lobe masks (SceneInfo.has_inseparable): each hit is tested.
     inseparable: bool = True
     #: Some BSDF's response leans (SceneInfo.has_leaning_lobes): responses at three
-    #: azimuths per level, else one (bsdfs.RESPONSE_AZIMUTHS).
+    #: azimuths per level, else one (bsdfs.response_azimuths).
     leaning: bool = True
 
     #: The full search reaches this many lookup radii: the precomputed photons are a
@@ -421,7 +421,7 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
     n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
     diffuse = active & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
     response = diffuse_response(bsdf, si, diffuse,
-                                azimuths=RESPONSE_AZIMUTHS if source.leaning else 1)
+                                azimuths=response_azimuths(source.leaning))
     # No lookup where nothing is reflected (the back of a one-sided surface, a black
     # texel): the searches there are the slowest (no photon is near).
     lit = diffuse & (dr.max(response) > 0)

@@ -16,7 +16,8 @@ from . import cachefile, camera, pipeline, streams
 from ._jit import (ONE_MINUS_EPSILON, jittered, only_where, opaque_u32, shading_normal_on_side,
                    surface_offset)
 from .bsdfs import (diffuse_context, diffuse_response, glossy_beside_diffuse, lobes_separable,
-                    near_diffuse, non_diffuse_context, peak_within, tilted_normal)
+                    near_diffuse, non_diffuse_context, peak_within, response_azimuths,
+                    tilted_normal)
 from . import emission
 from .emission import sample_emitter_direction
 from . import skylight
@@ -734,7 +735,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
             # that may read; elsewhere below, for those that do.)
             read_n = mi.Vector3f(shading_n)
             if dr.hint(leaning, mode="scalar"):
-                response, tilt = diffuse_response(bsdf, si, lit_diffuse | inseparable, with_tilt=True)
+                response, tilt = diffuse_response(bsdf, si, lit_diffuse | inseparable, with_tilt=True,
+                                                  azimuths=response_azimuths(leaning))
                 read_n = tilted_normal(shading_n, tilt)
             if dr.hint(gather_first, mode="scalar"):
                 probe = (cache_ok | inseparable) & (traced > 0)
@@ -773,7 +775,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
             if dr.hint(leaning, mode="scalar"):
                 response = dr.select(trust | read_caustic, response, 0.0)
             else:
-                response = diffuse_response(bsdf, si, trust | read_caustic, azimuths=1)
+                response = diffuse_response(bsdf, si, trust | read_caustic,
+                                            azimuths=response_azimuths(leaning))
             # A rough plastic read where records reach: its coat too, where the whole
             # BSDF is nearly diffuse for the incident direction (as the principled reads
             # above, WHOLE_PEAK_RATIO), reflects the records' irradiance, and the path

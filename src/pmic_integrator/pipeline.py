@@ -630,10 +630,10 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
         # shadows they lit the floor round a sunlit patch 11-15 % too bright (over the
         # floor, by where photons put records: ±1.5 % on a whole room from one photon
         # seed to the next); the camera path samples them where it reads the cache.
-        (soft, soft_rotation), (delta, delta_rotation) = cache_mod.direct_irradiance(
+        (soft, soft_rotation), (delta, delta_rotation) = cache_mod.direct_irradiance_parts(
             scene, index.records.position, index.records.normal, cache_mod.RECORD_DIRECT_SAMPLES,
             settings.seed, prepared.ray_offset, shading_normal=index.records.shading_normal,
-            split=True, sky=prepared.sky, guides=index, rotation=True)
+            sky=prepared.sky, guides=index)
         if prepared.info.has_delta_emitter:
             index.direct, index.direct_all = soft, soft + delta
             index.direct_rotation = soft_rotation
