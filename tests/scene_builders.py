@@ -83,6 +83,20 @@ def thin_wall_room(camera_on_lit_side=False, thickness=0.002, size=(32, 24)):
     return d
 
 
+def closed_box_on_floor(size=(32, 24)):
+    """A closed two-sided box (turned 32.5°) standing on a floor under a white sky, the
+    camera inside it: ``path`` is black. The box's walls meet the floor in creases
+    where photons that land at a wall's foot lie on the wall's plane."""
+    return {"type": "scene",
+            "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale([4, 3, 1]),
+                      "bsdf": {"type": "diffuse"}},
+            "box": {"type": "cube", "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}},
+                    "to_world": T().translate([1.237, 1.583, 0.393]).rotate([0, 1, 0], 32.5)
+                    .scale([1.583, 1.583, 1.583])},
+            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}},
+            "sensor": _sensor((0.9, 1.5, 0.8), (0.0, 0.3, 1.1), 70.0, size)}
+
+
 def checker_texture(n=8, dark=0.1, light=0.8, res=64):
     """A bitmap checkerboard (n×n squares) as a Mitsuba bitmap texture."""
     u = (np.arange(res) * n // res) % 2

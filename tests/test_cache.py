@@ -424,9 +424,9 @@ def _interpolate_counting_shadow_rays(index, points, monkeypatch):
     traced = dr.zeros(mi.UInt32, 1)
     blocked = cache.segment_blocked
 
-    def counting(scene, origin, target, active):
+    def counting(scene, origin, target, active, past=None):
         dr.scatter_reduce(dr.ReduceOp.Add, traced, mi.UInt32(1), mi.UInt32(0), mi.Bool(active))
-        return blocked(scene, origin, target, active)
+        return blocked(scene, origin, target, active, past=past)
 
     monkeypatch.setattr(cache, "segment_blocked", counting)
     x = np.array(points, dtype=np.float32).T

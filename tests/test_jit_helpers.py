@@ -3,7 +3,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from pmic_integrator._jit import only_where
+from pmic_integrator._jit import only_where, segment_blocked
 
 
 def test_only_where_computes_on_the_masked_lanes_and_zeros_elsewhere():
@@ -31,3 +31,18 @@ def test_only_where_advances_the_sampler_on_the_masked_lanes_only():
     after = np.array(sampler.next_1d())
     assert after[:3].tolist() == second[:3].tolist()
     assert after[3:].tolist() == first[3:].tolist()
+
+
+def test_segment_blocked_past_its_target_counts_a_target_on_a_wall_as_behind_it():
+    """A target on a wall's plane (a photon at the wall's foot, lifted along the floor's
+    normal) is behind the wall with ``past``; stopped just short of it, the ray passed
+    (the light of the closed box on a floor, tests/test_bias.py). Targets clear of the
+    wall are unchanged."""
+    wall = mi.load_dict({"type": "scene", "wall": {"type": "rectangle",
+                         "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], 90)}})  # the x = 0 plane
+    origin = mi.Point3f([-0.1] * 4, [0.01] * 4, [0.0] * 4)
+    target = mi.Point3f([0.0, 1e-7, -1e-7, -0.05], [0.01] * 4, [0.0] * 4)
+    short = np.array(segment_blocked(wall, origin, target, True))
+    past = np.array(segment_blocked(wall, origin, target, True, past=0.005))
+    assert past.tolist() == [True, True, True, False]
+    assert not short[0] and not short[2] and not short[3]  # (the leak)

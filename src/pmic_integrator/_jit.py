@@ -106,13 +106,20 @@ def surface_offset(p: mi.Point3f, offset: float) -> mi.Float:
     return opaque_float(offset) + dr.max(dr.abs(mi.Vector3f(p))) * RAY_OFFSET_RELATIVE
 
 
-def segment_blocked(scene: mi.Scene, origin: mi.Point3f, target: mi.Point3f, active) -> mi.Bool:
-    """Does a surface lie between ``origin`` and ``target``? (One shadow ray, stopped
-    just short of the target; zero-length segments are never blocked.)"""
+def segment_blocked(scene: mi.Scene, origin: mi.Point3f, target: mi.Point3f, active,
+                    past=None) -> mi.Bool:
+    """Does a surface lie between ``origin`` and ``target``? (One shadow ray; zero-length
+    segments are never blocked.) Without ``past`` the ray stops just short of the target;
+    with it, it goes on ``past`` beyond the target, so that a target lying on a
+    surface's plane (a photon stored at a wall's foot, lifted along the floor's normal:
+    it stays on the wall's plane, within rounding of either side) counts as behind
+    that surface, whichever side rounding put it on. Callers whose endpoints are lifted
+    off their own surfaces pass a fraction of the lift: nothing else lies that close
+    beyond the target."""
     offset = target - origin
     length = dr.norm(offset)
     ray = mi.Ray3f(origin, offset / dr.maximum(length, 1e-30))
-    ray.maxt = length * 0.999
+    ray.maxt = length * 0.999 if past is None else length + past
     return scene.ray_test(ray, mi.Bool(active) & (length > 0))
 
 

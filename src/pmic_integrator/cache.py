@@ -25,7 +25,7 @@ import numpy as np
 
 from . import streams
 from . import skylight
-from .gather import GatherSource, gather_radiance, stratified_directions
+from .gather import PAST_TARGET_LIFTS, GatherSource, gather_radiance, stratified_directions
 from . import emission
 from ._jit import (ONE_MINUS_EPSILON, concat, interleave, jittered, mean_value, opaque_float, opaque_u32,
                    rng as make_rng, scatter_min,
@@ -382,7 +382,7 @@ def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active) ->
     target = rec_p + rec_n * lift
     margin = OBSTACLE_MARGIN * obstacle
     test = active & (rec_reach > margin) & (dr.norm(target - origin) > margin)
-    return segment_blocked(scene, origin, target, test)
+    return segment_blocked(scene, origin, target, test, past=PAST_TARGET_LIFTS * lift)
 
 
 def placement_priority(index: mi.UInt32) -> mi.UInt32:
@@ -641,7 +641,8 @@ def clamp_records_to_points(index: "RecordIndex", p: mi.Point3f, n: mi.Vector3f,
         distance = dr.norm(p - rp)
         bound = radius + distance
         if scene is not None:
-            hidden = segment_blocked(scene, p + n * lift, rp + rn * lift, ok)
+            hidden = segment_blocked(scene, p + n * lift, rp + rn * lift, ok,
+                                     past=PAST_TARGET_LIFTS * lift)
             # Just outside the reach: ε = |x − xᵢ| / Rᵢ ≥ a.
             bound = dr.select(hidden, distance * (0.99 / index.max_error), bound)
         scatter_min(bound_r, bound, i, ok & (bound < rr))
