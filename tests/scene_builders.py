@@ -97,6 +97,25 @@ def closed_box_on_floor(size=(32, 24)):
             "sensor": _sensor((0.9, 1.5, 0.8), (0.0, 0.3, 1.1), 70.0, size)}
 
 
+def glossy_metal_floor_box(size=(16, 16)):
+    """A closed box of dark grey walls over a glossy metallic ``principled`` floor
+    (metallic 0.85, roughness 0.13), lit by a small area light under the ceiling."""
+    grey = {"type": "twosided", "bsdf": _diffuse((0.2, 0.2, 0.2))}
+    d = {"type": "scene",
+         "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90),
+                   "bsdf": {"type": "principled", "base_color": {"type": "rgb", "value": [0.85, 0.75, 0.3]},
+                            "metallic": 0.85, "roughness": 0.13, "specular": 0.6}},
+         "ceiling": {"type": "rectangle", "to_world": T().translate([0, 2, 0]).rotate([1, 0, 0], 90), "bsdf": grey},
+         "back": {"type": "rectangle", "to_world": T().translate([0, 1, -1]), "bsdf": grey},
+         "front": {"type": "rectangle", "to_world": T().translate([0, 1, 1]).rotate([0, 1, 0], 180), "bsdf": grey},
+         "left": {"type": "rectangle", "to_world": T().translate([-1, 1, 0]).rotate([0, 1, 0], 90), "bsdf": grey},
+         "right": {"type": "rectangle", "to_world": T().translate([1, 1, 0]).rotate([0, 1, 0], -90), "bsdf": grey},
+         "light": {"type": "rectangle", "to_world": T().translate([0, 1.99, 0]).rotate([1, 0, 0], 90).scale(0.25),
+                   "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [15, 15, 15]}}},
+         "sensor": _sensor((0, 1, 0.9), (0, 0.8, -1), 60.0, size)}
+    return d
+
+
 def checker_texture(n=8, dark=0.1, light=0.8, res=64):
     """A bitmap checkerboard (n×n squares) as a Mitsuba bitmap texture."""
     u = (np.arange(res) * n // res) % 2

@@ -15,9 +15,9 @@ from mitsuba.ad.integrators.common import mis_weight
 from . import cachefile, camera, pipeline, streams
 from ._jit import (ONE_MINUS_EPSILON, jittered, only_where, opaque_u32, shading_normal_on_side,
                    surface_offset)
-from .bsdfs import (diffuse_context, diffuse_response, glossy_beside_diffuse, lobes_separable,
-                    near_diffuse, non_diffuse_context, peak_within, response_azimuths,
-                    tilted_normal)
+from .bsdfs import (WHOLE_PEAK_RATIO, diffuse_context, diffuse_response, glossy_beside_diffuse,
+                    lobes_separable, near_diffuse, non_diffuse_context, peak_within,
+                    response_azimuths, tilted_normal)
 from . import emission
 from .emission import sample_emitter_direction
 from . import skylight
@@ -42,19 +42,6 @@ TRUST_RECORD_RADII = 1.0
 #: ...but at most this many diffuse bounces per camera path: then the cache is read
 #: however close (bounded cost; the error is by then three diffuse bounces deep).
 MAX_TRACED_BOUNCES = 3
-#: A BSDF whose lobes cannot be taken apart (principled) reads the cache with its
-#: whole response only where it is this close to diffuse for the incident direction:
-#: its value at the mirror direction at most this many times its cosine-weighted mean
-#: (:func:`~pmic_integrator.bsdfs.near_diffuse`). Read wherever a diffuse lobe would
-#: be, a Cornell box of principled walls came out 3-8 % off in places at roughness
-#: 0.5, 10-20 % with metallic 0.5 and roughness 0.3 (glossy reflections of the light
-#: averaged away); at 2, within 1.4 % and 0.7 % (the metallic walls never read: they
-#: are traced as before); at 4, 3 % and 3 %. In a dim room lit through a door
-#: (benchmarks/scene_kinds.py's door_principled) it still leaves the image ~2 % dark
-#: for most photon seeds (a quadrant 5 %), mostly from the gathers' even-light
-#: approximation at principled hits (README, limits); at 1.2 it is unbiased but
-#: reads too rarely to pay (0.39x path's speed there, against 1.87x).
-WHOLE_PEAK_RATIO = 2.0
 #: Guiding (``guiding``): at a traced diffuse vertex that a record reaches, this
 #: fraction, times the share of bounced light in the record's irradiance, of the
 #: continuation rays is drawn from the record's directional distribution of gathered
