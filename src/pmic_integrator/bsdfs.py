@@ -234,21 +234,20 @@ def peak_within(bsdf, si: mi.SurfaceInteraction3f, active, mean: mi.Float,
     return active & (mean > 0) & (peak <= peak_ratio * mean)
 
 
-#: A BSDF whose lobes cannot be taken apart (principled) reads the cache (a camera
-#: vertex) or a photon's irradiance (a gather hit) with its whole response only where it is this close to diffuse for the incident direction:
-#: its value at the mirror direction at most this many times its cosine-weighted mean
-#: (:func:`~pmic_integrator.bsdfs.near_diffuse`). Read wherever a diffuse lobe would
-#: be, a Cornell box of principled walls came out 3-8 % off in places at roughness
-#: 0.5, 10-20 % with metallic 0.5 and roughness 0.3 (glossy reflections of the light
+#: A BSDF whose lobes cannot be taken apart (principled) reads the cache at a camera
+#: vertex with its whole response only where it is this close to diffuse for the
+#: incident direction: its value at the mirror direction at most this many times its
+#: cosine-weighted mean (:func:`near_diffuse`; gather hits have their own bound,
+#: ``gather.GATHER_WHOLE_PEAK_RATIO``). Read wherever a diffuse lobe would be, a
+#: Cornell box of principled walls came out 3-8 % off in places at roughness 0.5,
+#: 10-20 % with metallic 0.5 and roughness 0.3 (glossy reflections of the light
 #: averaged away); at 2, within 1.4 % and 0.7 % (the metallic walls never read: they
 #: are traced as before); at 4, 3 % and 3 %. In a dim room lit through a door
-#: (benchmarks/scene_kinds.py's door_principled) it still leaves the image ~2 % dark
-#: for most photon seeds (a quadrant 5 %), mostly from the gathers' even-light
-#: approximation at principled hits (README, limits); at 1.2 it is unbiased but
-#: reads too rarely to pay (0.39x path's speed there, against 1.87x). Gather hits read
-#: wherever a diffuse lobe would be until 2026-12-04: a record on a wall beside a glossy
-#: metallic floor (principled, metallic 0.86, roughness 0.13) read the floor 76 % too
-#: bright, and the first-hit image of that random room came out 12 % bright.
+#: (benchmarks/scene_kinds.py's door_principled) it left the image ~2 % dark for most
+#: photon seeds (a quadrant 5 %), mostly from the gathers' even-light approximation at
+#: principled hits (README, limits; 0.987 -> 0.993 of path once gathers went on through
+#: the glossiest hits); at 1.2 it is unbiased but reads too rarely to pay (0.39x path's
+#: speed there, against 1.87x).
 WHOLE_PEAK_RATIO = 2.0
 
 

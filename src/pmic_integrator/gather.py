@@ -444,8 +444,8 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
     glossy = mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy)
     # A BSDF that ignores lobe masks (principled) reflects the photon's irradiance with
     # its whole response only where it is nearly diffuse for this ray (as camera
-    # vertices read the cache, WHOLE_PEAK_RATIO); elsewhere (a glossy metal) the ray
-    # goes on through a sample of the whole BSDF, reading nothing here.
+    # vertices read the cache; GATHER_WHOLE_PEAK_RATIO); elsewhere (a glossy metal) the
+    # ray goes on through a sample of the whole BSDF, reading nothing here.
     whole, separable = mi.Bool(False), mi.Bool(True)
     if source.inseparable:
         whole = diffuse & glossy & (bounce < GATHER_SPECULAR_BOUNCES)
@@ -474,18 +474,17 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
         else:
             lookup = lit
     if sample_delta:
+        # (Lanes going on through the whole BSDF cannot meet a delta light either: they
+        # reflect the sample by the BSDF itself.)
+        sampled = lit | whole
         u = mi.Point2f(rng.next_float32(), rng.next_float32())
-        ds, em_weight = sample_emitter_direction(scene, si, u, True, lit, delta=True)
+        ds, em_weight = sample_emitter_direction(scene, si, u, True, sampled, delta=True)
         cos_n = dr.maximum(dr.dot(ds.d, shading_normal_on_side(si, n)), 0.0)
         direct = throughput * response * mi.Color3f(em_weight) * cos_n
-        radiance += dr.select(lit & (ds.pdf > 0) & dr.all(dr.isfinite(direct)), direct, 0.0)
-    if sample_delta and source.inseparable:
-        # (Going on through the whole BSDF, a ray cannot meet a delta light: one sample.)
-        u = mi.Point2f(rng.next_float32(), rng.next_float32())
-        ds, em_weight = sample_emitter_direction(scene, si, u, True, whole, delta=True)
-        f_whole = bsdf.eval(ctx_all, si, si.to_local(ds.d), whole & (ds.pdf > 0))
-        direct = throughput * f_whole * mi.Color3f(em_weight)
-        radiance += dr.select(whole & (ds.pdf > 0) & dr.all(dr.isfinite(direct)), direct, 0.0)
+        if source.inseparable:
+            f_whole = bsdf.eval(ctx_all, si, si.to_local(ds.d), whole & (ds.pdf > 0))
+            direct = dr.select(whole, throughput * f_whole * mi.Color3f(em_weight), direct)
+        radiance += dr.select(sampled & (ds.pdf > 0) & dr.all(dr.isfinite(direct)), direct, 0.0)
     asked = GatherLookup(mask=lookup, p=si.p, n=n, weight=throughput * response, caustic=caustic_lanes)
     rest = active & ~near & ~whole & glossy
     rest &= bounce < GATHER_SPECULAR_BOUNCES
