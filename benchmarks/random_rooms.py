@@ -32,6 +32,8 @@ import numpy as np
 import pmic_integrator  # noqa: F401  (before mitsuba: the LLVM it needs)
 import mitsuba as mi
 
+from pmic_integrator.metrics import mean_luminance, rel_mse
+
 RESULTS = Path(__file__).resolve().parent / "results"
 mi.set_variant("llvm_ad_rgb")
 T = mi.ScalarTransform4f
@@ -220,16 +222,6 @@ def render(scene, integ, spp, seed=0):
     return np.array(mi.render(scene, integrator=mi.load_dict(integ), spp=spp, seed=seed))[..., :3]
 
 
-def lum(x):
-    return float((0.2126 * x[..., 0] + 0.7152 * x[..., 1] + 0.0722 * x[..., 2]).mean())
-
-
-def relmse(a, r):
-    return float(np.mean((a - r) ** 2 / (r ** 2 + 1e-2)))
-
-
-
-
 def measure(seed: int, path_spp: int) -> dict:
     d, desc = make_scene(seed)
     row = {"seed": seed, "scene": desc}
@@ -237,19 +229,19 @@ def measure(seed: int, path_spp: int) -> dict:
     ra = render(scene, {'type': 'path', 'max_depth': -1}, path_spp // 2, 11)
     rb = render(scene, {'type': 'path', 'max_depth': -1}, path_spp // 2, 12)
     ref = 0.5 * (ra + rb)
-    lum_ref = lum(ref)
+    lum_ref = mean_luminance(ref)
     start = time.perf_counter()
     img = render(scene, {'type': 'pmic'}, 64, 1)
     row["pmic_s"] = time.perf_counter() - start
     first_hit = render(scene, {'type': 'pmic', 'estimator': 'first_hit'}, 64, 2)
     row["finite"] = bool(np.isfinite(img).all() and np.isfinite(first_hit).all())
     if lum_ref <= 0:
-        row.update(path_black=True, pmic_mean=lum(img), first_hit_mean=lum(first_hit),
-                   flag=lum(img) > 0 or lum(first_hit) > 0 or not row["finite"])
+        row.update(path_black=True, pmic_mean=mean_luminance(img), first_hit_mean=mean_luminance(first_hit),
+                   flag=mean_luminance(img) > 0 or mean_luminance(first_hit) > 0 or not row["finite"])
         return row
-    row["halves"] = abs(lum(ra) - lum(rb)) / lum_ref
-    row["pmic_lum"], row["first_hit_lum"] = lum(img) / lum_ref, lum(first_hit) / lum_ref
-    row["pmic_relmse"], row["first_hit_relmse"] = relmse(img, ref), relmse(first_hit, ref)
+    row["halves"] = abs(mean_luminance(ra) - mean_luminance(rb)) / lum_ref
+    row["pmic_lum"], row["first_hit_lum"] = mean_luminance(img) / lum_ref, mean_luminance(first_hit) / lum_ref
+    row["pmic_relmse"], row["first_hit_relmse"] = rel_mse(img, ref), rel_mse(first_hit, ref)
     row["flag"] = (not row["finite"] or abs(row["pmic_lum"] - 1) > max(0.02, 3 * row["halves"])
                    or abs(row["first_hit_lum"] - 1) > max(0.03, 3 * row["halves"]))
     return row
