@@ -7,6 +7,8 @@ the variant changes.
 """
 from __future__ import annotations
 
+import functools
+
 import mitsuba as mi
 
 PLUGIN_NAME = "pmic"
@@ -50,16 +52,63 @@ def _unsupported(variant: str):
     )
 
 
+class _mitsuba_render_doc:  # what functools.update_wrapper copies: mi.render's name and doc
+    __module__ = "mitsuba"
+    __name__ = __qualname__ = "render"
+    __doc__ = ("Mitsuba's mi.render (see its documentation); errors raised inside pmic's render() "
+               "reach the caller as themselves instead of as Dr.Jit's custom-operation error.")
+
+
 def _on_variant_change(old, new) -> None:
     if new is not None:
         register(new)
 
 
+def _is_pmic(integrator) -> bool:
+    return type(integrator).__module__.startswith("pmic_integrator")
+
+
+def _render_with_own_errors(*args, **kwargs):
+    """``mi.render``, but an error raised inside pmic's ``render()`` reaches the caller
+    as itself. Mitsuba runs an integrator's ``render()`` inside Dr.Jit's custom
+    operation, which replaces any error by ``drjit.custom(<..._RenderOp>): error while
+    performing a custom differentiable operation. (see above)``; the user's own error
+    (a cache file of another scene, a lookup_radius too large for this scene) is then
+    only its ``__cause__``. Other integrators' errors are left as Mitsuba raises them."""
+    from mitsuba.python.util import render
+
+    try:
+        return render(*args, **kwargs)
+    except RuntimeError as error:
+        cause = error.__cause__
+        bound = _RENDER_SIGNATURE.bind_partial(*args, **kwargs).arguments
+        integrator = bound.get("integrator") or bound["scene"].integrator()
+        if cause is None or not _is_pmic(integrator) or "drjit.custom" not in str(error):
+            raise
+        raise cause from None
+
+
+def _render_signature():
+    import inspect
+
+    def render(scene, params=None, sensor=0, integrator=None, seed=0, seed_grad=0, spp=0,
+               spp_grad=0):  # mi.render's own parameters (Mitsuba 3.9)
+        pass
+
+    return inspect.signature(render)
+
+
+_RENDER_SIGNATURE = _render_signature()
+
+
 def install() -> None:
-    """Register for the active variant and for every variant selected later."""
+    """Register for the active variant and for every variant selected later; make
+    ``mi.render`` raise pmic's errors as themselves (:func:`_render_with_own_errors`)."""
     global _installed
     if not _installed:
         mi.detail.add_variant_callback(_on_variant_change)
+        functools.update_wrapper(_render_with_own_errors, _mitsuba_render_doc)
+        mi.render = _render_with_own_errors
         _installed = True
     if mi.variant() is not None:
         register(mi.variant())

@@ -25,6 +25,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .fingerprint import SceneFingerprint
+
 FORMAT = "pmic-cache"
 #: 2: first-hit caches completed by surface probes (no records added per view).
 #: 3: gather sources hold the sparse photons' far grid (GatherSource.far_grid).
@@ -77,7 +79,10 @@ FORMAT = "pmic-cache"
 #:     lobe leans (bsdfs.diffuse_response, SceneInfo.has_leaning_lobes,
 #:     GatherSource.leaning): records differ.
 #: 28: records keep their direct light's rotational gradient (RecordIndex.direct_rotation).
-VERSION = 28
+#: 29: the scene's fingerprint covers its shapes and emitters only, one digest per object
+#:     (fingerprint.SceneFingerprint), and settings are stored by name: a file serves
+#:     every camera of its scene.
+VERSION = 29
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
@@ -93,12 +98,13 @@ def _classes():
     from .lights import RecordLights
     from .gather import GatherSource
     from .hashgrid import BallGrid, PointGrid, PointGridPyramid
+    from .fingerprint import SceneFingerprint
     from .pipeline import PreparedScene, SceneInfo
     from .photons import PhotonMap
 
     return {c.__name__: c for c in (CacheRecords, RecordIndex, GatherSource, BallGrid, PointGrid,
                                     PointGridPyramid, PreparedScene, SceneInfo, PhotonMap,
-                                    RecordLights)}
+                                    RecordLights, SceneFingerprint)}
 
 
 def _flatten(obj, name: str, arrays: dict):
@@ -151,8 +157,10 @@ def _build(desc, arrays, scene, classes):
     raise ValueError(f"unknown entry kind {kind!r}")
 
 
-def save(path, prepared, fingerprint: str, settings_key: tuple) -> Path:
-    """Write ``prepared`` (a ``PreparedScene``) to ``path`` (``.npz``)."""
+def save(path, prepared, fingerprint, settings_key: tuple) -> Path:
+    """Write ``prepared`` (a ``PreparedScene``) to ``path`` (``.npz``), with the
+    :class:`~pmic_integrator.fingerprint.SceneFingerprint` of its scene and the
+    :meth:`Settings.key` it was built with."""
     from . import __version__
 
     path = Path(path)
@@ -161,16 +169,26 @@ def save(path, prepared, fingerprint: str, settings_key: tuple) -> Path:
     # emitter object, and its index in scene.emitters() changes from load to load).
     body = _flatten(dataclasses.replace(prepared, sky=None), "prepared", arrays)
     meta = {"format": FORMAT, "version": VERSION, "pmic_version": __version__,
-            "fingerprint": fingerprint, "settings": repr(settings_key), "body": body}
+            "fingerprint": fingerprint.digest, "scene_objects": fingerprint.to_json(),
+            "settings": dict(settings_key), "body": body}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     with open(path, "wb") as f:  # np.savez would append .npz to a name without it
         np.savez(f, **arrays)
     return path
 
 
-def load(path, scene, fingerprint: str, settings_key: tuple):
-    """Read a ``PreparedScene`` from ``path`` for ``scene``; ValueError if the file is
-    not a pmic cache of this format, of this scene and these settings, or is damaged."""
+def _settings_differences(saved: dict, settings_key: tuple) -> str:
+    here = dict(settings_key)
+    names = [n for n in {**saved, **here} if saved.get(n) != here.get(n)]
+    return ", ".join(f"{n} {saved.get(n, '(absent)')!r} in the file, {here.get(n, '(absent)')!r} here"
+                     for n in names)
+
+
+def load(path, scene, fingerprint, settings_key: tuple):
+    """Read a ``PreparedScene`` from ``path`` for ``scene`` (whose
+    :class:`~pmic_integrator.fingerprint.SceneFingerprint` is ``fingerprint``; its
+    cameras do not count); ValueError if the file is not a pmic cache of this format,
+    of this scene and these settings, or is damaged."""
     path = Path(path)
     where = f"cache_file '{path}'"
     if not path.is_file():
@@ -183,12 +201,13 @@ def load(path, scene, fingerprint: str, settings_key: tuple):
             if meta.get("version") != VERSION:
                 raise CacheFileError(f"{where} has format version {meta.get('version')!r}; this pmic "
                                      f"reads version {VERSION} (rebuild the cache)")
-            if meta["fingerprint"] != fingerprint:
+            if meta["fingerprint"] != fingerprint.digest:
+                saved = SceneFingerprint.from_json(meta["scene_objects"])
                 raise CacheFileError(f"{where} was built for another scene (or an edited one): "
-                                     f"fingerprint {meta['fingerprint']}, this scene's is {fingerprint}")
-            if meta["settings"] != repr(settings_key):
-                raise CacheFileError(f"{where} was built with other settings: {meta['settings']}, "
-                                     f"these are {settings_key!r}")
+                                     f"{fingerprint.differences(saved)}")
+            if meta["settings"] != dict(settings_key):
+                raise CacheFileError(f"{where} was built with other settings: "
+                                     f"{_settings_differences(meta['settings'], settings_key)}")
             arrays = {k: data[k] for k in data.files if k != "meta"}
     except CacheFileError:
         raise

@@ -366,7 +366,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         else read from ``cache_file`` or built (:func:`pipeline.prepare`). Published
         only when whole: after a failure (or a Ctrl-C) nothing is kept, and the next
         render starts again from the photons."""
-        key = (id(scene), self.settings.key(), scene_fingerprint(scene))
+        key = (id(scene), self.settings.key(), scene_fingerprint(scene))  # not its cameras
         if self._prepared is not None and self._prepared.key == key:
             return self._prepared
         self._prepared = self._view = None

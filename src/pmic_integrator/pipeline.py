@@ -15,10 +15,8 @@ and changes nothing that is shared.
 """
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
-import re
 import sys
 import time
 import warnings
@@ -30,6 +28,7 @@ import numpy as np
 
 from . import cache as cache_mod, streams
 from .emission import is_delta, scene_bbox  # noqa: F401  (scene_bbox re-exported)
+from .fingerprint import SceneFingerprint, scene_fingerprint  # noqa: F401 (re-exported)
 from ._jit import concat, every_nth, opaque_float, rng as make_rng
 from .bsdfs import glossy_beside_diffuse, ignores_lobe_masks, lobes_lean, non_diffuse_context
 from .cache import CacheRecords, RecordIndex
@@ -227,7 +226,8 @@ class SceneInfo:
 class PreparedScene:
     """Everything the render stage reads, built once per scene (view independent)."""
 
-    key: tuple  #: fingerprint of the scene and the parameters it was built with
+    #: (id of the scene object, Settings.key(), SceneFingerprint): what it was built for
+    key: tuple
     info: SceneInfo
     global_map: PhotonMap
     caustic_map: PhotonMap
@@ -257,30 +257,6 @@ class PreparedScene:
     @property
     def ray_offset(self) -> float:
         return RAY_OFFSET_DIAGONAL * self.length_scale
-
-
-def scene_fingerprint(scene: mi.Scene) -> str:
-    """Digest of the scene's parameters, so that an edited scene is rebuilt and a cache
-    file is only read for its own scene. Stable across processes: unnamed objects'
-    keys (``object_<address>``) are normalised and entries sorted."""
-    params = mi.traverse(scene)
-    entries = []
-    for key in params.keys():
-        try:
-            value = params[key]
-        except Exception:  # pragma: no cover - unreadable parameters are skipped
-            continue
-        if dr.is_array_v(value):
-            data = np.ascontiguousarray(np.array(value)).tobytes()
-        else:
-            data = repr(value).encode()
-        entries.append((re.sub(r"object_\d+", "object", key).encode(), data))
-    digest = hashlib.blake2b(digest_size=16)
-    for name, data in sorted(entries):
-        digest.update(name)
-        digest.update(len(data).to_bytes(8, "little"))
-        digest.update(data)
-    return digest.hexdigest()
 
 
 # ----------------------------------------------------------------------------------------

@@ -207,12 +207,20 @@ class Settings:
         """M×N strata of a record's gather (:func:`rays_strata` of ``gather_rays``)."""
         return rays_strata(self.gather_rays)
 
+    #: The parameters the view-independent stages depend on (not hide_emitters,
+    #: rr_depth, direct_samples, aovs or cache_file, which only the camera pass reads).
+    CACHE_PARAMETERS = ("method", "max_depth", "global_photons", "caustic_photons", "lookup_size",
+                        "lookup_radius", "max_error", "gather_rays", "final_gather",
+                        "max_photon_paths", "seed", "estimator")
+
     def key(self) -> tuple:
-        """What the view-independent stages depend on (not hide_emitters, rr_depth or
-        direct_samples, which only the camera pass reads)."""
-        return (self.method, self.max_depth, self.global_photons, self.caustic_photons,
-                self.lookup_size, self.lookup_radius, self.max_error, self.gather_rays,
-                self.final_gather, self.max_photon_paths, self.seed, self.final_gather_camera)
+        """What the view-independent stages depend on, as (name, value) pairs; the
+        estimator counts for method ``pmic`` only (its final gather's records hold
+        direct light too)."""
+        values = {name: getattr(self, name) for name in self.CACHE_PARAMETERS}
+        if self.method != "pmic":
+            values["estimator"] = "(not used)"
+        return tuple(values.items())
 
 
 def rays_strata(rays: int) -> tuple[int, int]:
