@@ -63,3 +63,74 @@ def test_worker_threads_render_what_worker_processes_render(tmp_path):
 def test_bad_spp_is_refused(tmp_path):
     with pytest.raises(ValueError, match="'spp'"):
         render_views(tmp_path / "none.xml", spp=0)
+
+
+def test_camera_path_frames_equal_renders_of_the_moved_sensor(tmp_path):
+    """A fly-through from one cache: frames along two key look-ats, on worker threads,
+    are what rendering the scene with its sensor moved there gives (mi.traverse)."""
+    from pmic_integrator.views import frames_along_path, place_camera, render_frames
+
+    scene_file = tmp_path / "room.xml"
+    scene_file.write_text(SCENE.format(sensors=SENSOR.format(x=0.0)))
+    keys = [{"origin": [-0.5, 0, 0.95], "target": [0, -0.3, 0], "fov": 60},
+            {"origin": [0.5, 0.2, 0.9], "target": [0, -0.3, 0], "fov": 80}]
+    frames = frames_along_path(scene_file, keys, 3, seed=4)
+    assert [f.seed for f in frames] == [4, 5, 6] and frames[1].fov == pytest.approx(70)
+    cache = tmp_path / "cache.npz"
+    images = render_frames(frames, 2, SETTINGS, cache, n_workers=1, processes=False, progress=False)
+    scene = mi.load_file(str(scene_file))
+    pmic = mi.load_dict({"type": "pmic", **SETTINGS, "cache_file": str(cache)})
+    for frame, image in zip(frames, images):
+        place_camera(scene, frame)
+        local = np.array(mi.render(scene, integrator=pmic, spp=2, seed=frame.seed))
+        assert np.array_equal(image, local), frame.name
+        assert pmic.stats["cache_builds"] == 0  # loaded once, never rebuilt
+    assert not np.array_equal(images[0], images[2])
+
+
+def test_scene_files_sharing_geometry_render_from_the_first_files_cache(tmp_path):
+    from pmic_integrator.views import frames_of_files, render_frames
+
+    files = []
+    for i, x in enumerate((-0.4, 0.4)):
+        files.append(tmp_path / f"shot{i}.xml")
+        files[-1].write_text(SCENE.format(sensors=SENSOR.format(x=x)))
+    images = render_frames(frames_of_files(files), 2, SETTINGS, n_workers=1, processes=False,
+                           progress=False)
+    assert len(images) == 2 and all(np.isfinite(im).all() and im.mean() > 0 for im in images)
+    # A file whose light moved is another scene: refused, naming what changed.
+    moved = tmp_path / "moved.xml"
+    moved.write_text(SCENE.format(sensors=SENSOR.format(x=0.0)).replace('<translate y="0.99"/>',
+                                                                      '<translate y="0.9"/>'))
+    with pytest.raises(Exception, match="frame 'moved'.*another scene.*changed: unnamed shape \\(Rectangle"):
+        render_frames(frames_of_files([files[0], moved]), 1, SETTINGS, n_workers=1, processes=False,
+                      progress=False)
+
+
+@pytest.mark.parametrize("keys,match", [
+    ([], "at least one key"),
+    ([{"origin": [0, 0, 1]}], "'origin' and 'target'"),
+    ([{"origin": [0, 0], "target": [0, 0, 0]}], "'origin' must be 3 finite numbers"),
+    ([{"origin": [0, 0, 1], "target": [0, 0, 0], "fov": 200}], "'fov' must be in"),
+])
+def test_bad_camera_paths_are_refused(keys, match):
+    from pmic_integrator.views import frames_along_path
+
+    with pytest.raises(ValueError, match=match):
+        frames_along_path("scene.xml", keys, 4)
+
+
+def test_render_views_command_writes_exr_and_png(tmp_path):
+    from pmic_integrator.cli import render_views_main
+
+    scene_file = tmp_path / "room.xml"
+    scene_file.write_text(SCENE.format(sensors=SENSOR.format(x=0.0)))
+    keys = tmp_path / "keys.json"
+    keys.write_text('[{"origin": [-0.5, 0, 0.95], "target": [0, -0.3, 0]},'
+                    ' {"origin": [0.5, 0, 0.95], "target": [0, -0.3, 0]}]')
+    out = tmp_path / "out"
+    assert render_views_main([str(scene_file), "--camera-path", str(keys), "--frames", "2", "--spp", "1",
+                              "--threads", "--set", "global_photons=20000", "--set", "gather_rays=64",
+                              "--output", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["frame_0000.exr", "frame_0000.png",
+                                                      "frame_0001.exr", "frame_0001.png"]

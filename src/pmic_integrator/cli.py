@@ -39,6 +39,17 @@ def _parse_settings(items):
     return settings
 
 
+def _parse_defines(items) -> dict:
+    """``-D key=value`` pairs (Mitsuba's command line), for a scene file's ``$key``."""
+    defines = {}
+    for item in items or []:
+        if "=" not in item:
+            raise SystemExit(f"-D expects KEY=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        defines[key.strip()] = value.strip()
+    return defines
+
+
 def build_parser() -> argparse.ArgumentParser:
     from pmic_integrator.scenes import SCENES
 
@@ -151,39 +162,72 @@ def main(argv=None) -> int:
 
 
 def render_views_main(argv=None) -> int:
-    """``pmic-render-views scene.xml``: every sensor (or ``--sensors``) from one cache, on
-    a local Dask cluster or ``--scheduler``; EXR images into ``--output``."""
+    """``pmic-render-views``: frames from one cache: every sensor of a scene (or
+    ``--sensors``), several scene files that share their geometry, or a camera path
+    (``--camera-path keys.json --frames N``); on a local Dask cluster or
+    ``--scheduler``; EXR images and PNG previews into ``--output``."""
     parser = argparse.ArgumentParser(
         prog="pmic-render-views",
-        description="Build pmic's cache of a scene once and render many of its sensors from it "
-                    "on Dask (a local cluster, or --scheduler ADDRESS).")
-    parser.add_argument("scene", type=Path, help="Mitsuba XML scene file")
-    parser.add_argument("--sensors", type=int, nargs="+", default=None, help="sensor indices (default: all)")
+        description="Build pmic's cache of a scene once and render many frames from it on Dask "
+                    "(a local cluster, or --scheduler ADDRESS): the sensors of one scene, scene "
+                    "files that share their shapes, materials and lights (one frame each), or a "
+                    "camera path through key look-ats. Writes EXR images and PNG previews.")
+    parser.add_argument("scenes", type=Path, nargs="+", metavar="scene.xml",
+                        help="Mitsuba XML scene file; several: one frame per file (sensor 0), "
+                             "all rendered from the first file's cache")
+    parser.add_argument("--sensors", type=int, nargs="+", default=None,
+                        help="one scene: sensor indices (default: all)")
+    parser.add_argument("--camera-path", type=Path, default=None, metavar="KEYS.json",
+                        help="one scene: a JSON list of key cameras, each {\"origin\": [x, y, z], "
+                             "\"target\": [x, y, z], \"up\": [x, y, z] (optional), \"fov\": degrees "
+                             "(optional)}; sensor 0 moves through them, interpolated linearly")
+    parser.add_argument("--frames", type=int, default=None,
+                        help="with --camera-path: how many frames (default: one per key)")
     parser.add_argument("--spp", type=int, default=16)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="render seed; frames of a camera path or of several files use "
+                             "seed, seed+1, ... (default: 0)")
     parser.add_argument("--set", action="append", metavar="NAME=VALUE", help="a pmic parameter (repeatable)")
+    parser.add_argument("-D", dest="defines", action="append", metavar="KEY=VALUE", default=[],
+                        help="a value for a $KEY parameter of the scene files (repeatable)")
     parser.add_argument("--cache-file", type=Path, default=None, help="reuse or keep the cache here")
     parser.add_argument("--scheduler", default=None, help="address of a Dask scheduler")
     parser.add_argument("--workers", type=int, default=1, help="local cluster: worker processes")
     parser.add_argument("--threads", action="store_true",
                         help="local cluster: workers are threads of this process, sharing one "
                              "scene, one cache and the compiled kernels (faster on one machine)")
+    parser.add_argument("--no-png", action="store_true", help="write the EXR images only")
     parser.add_argument("--output", type=Path, default=Path("pmic-views"))
     parser.add_argument("--variant", default="llvm_ad_rgb")
     args = parser.parse_args(argv)
-    from pmic_integrator import scenes
-    from pmic_integrator.views import render_views
+    from pmic_integrator import views
 
+    scene = args.scenes[0]
+    load_args = _parse_defines(args.defines)
+    if len(args.scenes) > 1:
+        if args.sensors or args.camera_path:
+            parser.error("several scene files take neither --sensors nor --camera-path")
+        frames = views.frames_of_files(args.scenes, args.seed)
+    elif args.camera_path is not None:
+        if args.sensors:
+            parser.error("--camera-path moves sensor 0: give no --sensors")
+        keys = json.loads(args.camera_path.read_text())
+        frames = views.frames_along_path(scene, keys, args.frames or len(keys), seed=args.seed)
+    else:
+        if args.frames is not None:
+            parser.error("--frames goes with --camera-path")
+        import mitsuba as mi
+
+        mi.set_variant(args.variant)
+        frames = views.frames_of_sensors(scene, args.sensors, args.seed, load_args)
     start = time.perf_counter()
-    images = render_views(args.scene, args.sensors, args.spp, args.seed, _parse_settings(args.set),
-                          args.cache_file, args.scheduler, n_workers=args.workers,
-                          processes=not args.threads, variant=args.variant)
-    args.output.mkdir(parents=True, exist_ok=True)
-    for sensor, image in images.items():
-        scenes.write_exr(args.output / f"{args.scene.stem}_sensor{sensor}.exr", image[..., :3])
+    images = views.render_frames(frames, args.spp, _parse_settings(args.set), args.cache_file,
+                                 args.scheduler, n_workers=args.workers, processes=not args.threads,
+                                 variant=args.variant, **load_args)
+    views.write_frames(frames, images, args.output, png=not args.no_png)
     seconds = time.perf_counter() - start
-    print(f"{len(images)} views in {seconds:.1f} s ({len(images) / seconds:.2f} views/s), "
-          f"written to {args.output.resolve()}")
+    print(f"{len(images)} frames in {seconds:.1f} s ({len(images) / seconds:.2f} frames/s), "
+          f"written to {args.output.resolve()} (EXR{'' if args.no_png else ' and PNG'})")
     return 0
 
 

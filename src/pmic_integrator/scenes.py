@@ -220,6 +220,20 @@ def write_exr(
         exr.write(str(path))
 
 
+def write_png(path: str | os.PathLike, image, exposure: float = 1.0) -> None:
+    """Write an H x W x 3 linear image as an 8-bit sRGB PNG preview (scaled by
+    ``exposure``, clipped at 1: :func:`pmic_integrator.metrics.tonemap_srgb`)."""
+    from .metrics import tonemap_srgb
+
+    data = np.asarray(image, dtype=np.float32)
+    if data.ndim != 3 or data.shape[2] != 3:
+        raise ValueError(f"image must have shape (H, W, 3); got {data.shape}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    encoded = (tonemap_srgb(data, exposure) * 255 + 0.5).clip(0, 255).astype(np.uint8)
+    _mitsuba().Bitmap(np.ascontiguousarray(encoded)).write(str(path))
+
+
 def read_exr_metadata(path: str | os.PathLike) -> dict[str, str]:
     """The string attributes of an EXR header (those written through ``metadata``)."""
     import OpenEXR
