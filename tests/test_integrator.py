@@ -266,6 +266,7 @@ def test_unusable_llvm_loaded_first_gives_one_clear_sentence():
         pytest.skip(f"no old system LLVM is loaded by default here ({loaded})")
     warned = [l for l in out.stdout.splitlines() if l.startswith("WARNED")][0]
     assert "cannot compile Dr.Jit 1.5 kernels" in warned  # the warning at import
+    assert "Restart the Python process (in Jupyter: restart the kernel)" in warned
     assert "REFUSED" in out.stdout and "import pmic_integrator before drjit" in out.stdout
 
 

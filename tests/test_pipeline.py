@@ -226,18 +226,30 @@ def test_no_photon_is_stored_on_the_dark_side_of_a_one_sided_surface():
     assert (x > 0).all(), f"{int((x < 0).sum())} photons under the one-sided plate"
 
 
-def test_progress_writes_one_line_per_stage_to_a_log():
-    """In a log (not a terminal) each stage gets one line: the photon tracer reporting
-    its last batch at 100 % and the stage's end wrote two."""
+def test_progress_bars_end_at_100_percent_with_the_stage_detail():
+    """The photon tracer reporting its last batch stays under 100 %: the stage's end
+    (done) closes the bar at 100 % with the stored count."""
     import io
 
     log = io.StringIO()
-    progress = pipeline.Progress(enabled=True, stream=log)
+    progress = pipeline.Progress(enabled=True, stream=log, delay=0)
     progress.photons("global", 500, 1000, 800)
     progress.photons("global", 1000, 1000, 1600)
+    lines = [line for line in log.getvalue().replace("\r", "\n").split("\n") if line.strip()]
+    assert not [line for line in lines if "100%" in line], lines
     progress.done("photons (global)", "1000 stored")
     lines = [line for line in log.getvalue().replace("\r", "\n").split("\n") if line.strip()]
-    assert len(lines) == 1 and "100%" in lines[0] and "1000 stored" in lines[0], lines
+    assert lines[-1].startswith("photons (global)") and "100%" in lines[-1] and "1000 stored" in lines[-1]
+
+
+def test_progress_shows_nothing_for_a_short_stage_or_when_off():
+    import io
+
+    for progress in (pipeline.Progress(enabled=True, stream=io.StringIO()),  # under its delay
+                     pipeline.Progress(enabled=False, stream=io.StringIO(), delay=0)):
+        progress.update("cache", 0.5, "half")
+        progress.done("cache", "done")
+        assert progress.stream.getvalue() == ""
 
 
 @pytest.mark.parametrize("max_depth, holds", [(-1, True), (6, False), (63, False), (65, True)])

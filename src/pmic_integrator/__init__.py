@@ -28,5 +28,6 @@ register = _registration.register
 _registration.install()
 
 from .denoise import denoise, split_channels  # noqa: E402
+from .scenes import load_file  # noqa: E402
 
-__all__ = ["register", "denoise", "split_channels", "__version__"]
+__all__ = ["register", "denoise", "split_channels", "load_file", "__version__"]

@@ -70,8 +70,10 @@ def configure() -> str | None:
         if loaded and major is not None and major < MIN_LLVM_MAJOR:
             problem = (
                 f"Dr.Jit was imported before pmic_integrator and loaded {loaded} "
-                f"(LLVM {major}), which cannot compile Dr.Jit 1.5 kernels; import "
-                f"pmic_integrator before drjit/mitsuba, or set DRJIT_LIBLLVM_PATH to "
+                f"(LLVM {major}), which cannot compile Dr.Jit 1.5 kernels: the next render "
+                f"on an llvm_* variant, with any integrator ('path' too), would abort this "
+                f"process. Restart the Python process (in Jupyter: restart the kernel) and "
+                f"import pmic_integrator before drjit/mitsuba, or set DRJIT_LIBLLVM_PATH to "
                 f"an LLVM >= {MIN_LLVM_MAJOR} library before starting Python."
             )
         return loaded

@@ -1,11 +1,14 @@
-"""``pmic-compare``: render a bundled scene with pmic and with Mitsuba's path tracer at
-equal time, print both errors against the path-traced reference, and write the images.
+"""``pmic-compare``: render a scene (bundled, or any Mitsuba XML file) with pmic and with
+Mitsuba's path tracer at equal time, print both errors against a path-traced reference,
+and write the images. ``pmic-reference``: a reference of any scene file.
+``pmic-render-views``: many frames from one cache.
 
 Examples::
 
     pmic-compare                                   # Cornell box, 512x512, 32 spp
     pmic-compare indirect_room --spp 64 --set max_error=0.3 --set gather_rays=1024
-    pmic-compare cornell_caustics --output out/ --variant cuda_ad_rgb
+    pmic-compare my_room.xml -D spp=16 --denoise   # your scene; its reference made and kept
+    pmic-reference my_room.xml --time 600 -o my_room_ref.exr
 """
 from __future__ import annotations
 
@@ -55,19 +58,33 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(
         prog="pmic-compare",
-        description="Render a bundled scene with pmic and with Mitsuba's path tracer at equal "
-                    "time; print both errors against the path-traced reference.")
-    parser.add_argument("scene", nargs="?", default="cornell_box", choices=SCENES,
-                        help="bundled scene (default: cornell_box)")
-    parser.add_argument("--resolution", type=int, default=512,
-                        help="image width and height in pixels; a reference must exist at this size: "
-                             "512 for cornell_box and indirect_room, 128 for every scene (default: 512)")
+        description="Render a scene with pmic and with Mitsuba's path tracer at equal time; print "
+                    "both errors against a path-traced reference. The scene is a bundled one "
+                    f"({', '.join(SCENES)}) or any Mitsuba XML file; for a file, a reference is "
+                    "rendered with path on demand and kept (see --reference-spp).")
+    parser.add_argument("scene", nargs="?", default="cornell_box",
+                        help="a bundled scene's name or a Mitsuba XML scene file (default: cornell_box)")
+    parser.add_argument("-D", dest="defines", action="append", metavar="KEY=VALUE", default=[],
+                        help="a value for the scene file's $KEY parameter, as Mitsuba's command line "
+                             "takes it (repeatable)")
+    parser.add_argument("--resolution", type=int, default=None,
+                        help="bundled scenes: image width and height; a reference must exist at this "
+                             "size: 512 for cornell_box and indirect_room, 128 for every scene "
+                             "(default: 512). A scene file renders at its film's size.")
     parser.add_argument("--spp", type=int, default=32, help="pmic samples per pixel (default: 32)")
     parser.add_argument("--set", action="append", metavar="NAME=VALUE",
                         help="a pmic parameter, e.g. --set global_photons=400000 (repeatable)")
     parser.add_argument("--denoise", action="store_true",
                         help="also render pmic + OIDN and path + OIDN at equal time (same albedo "
                              "and normal guides, wall time includes the denoiser)")
+    parser.add_argument("--reference", type=Path, default=None, metavar="REF.exr",
+                        help="a scene file's reference image (linear RGB EXR of the film's size) "
+                             "instead of one rendered by path")
+    parser.add_argument("--reference-spp", type=int, default=1024,
+                        help="a scene file's path reference: samples per pixel, rendered once and "
+                             "kept in ~/.cache/pmic/references ($PMIC_CACHE_DIR) (default: 1024)")
+    parser.add_argument("--reference-time", type=float, default=None, metavar="SECONDS",
+                        help="render the reference for about this long instead of --reference-spp")
     parser.add_argument("--output", type=Path, default=Path("pmic-output"),
                         help="folder for the EXR/PNG images and results.json (default: pmic-output)")
     parser.add_argument("--variant", default="llvm_ad_rgb",
@@ -75,39 +92,43 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.spp < 1:
-        raise SystemExit(f"pmic-compare: --spp must be >= 1, got {args.spp}")
-    import mitsuba as mi
-    import numpy as np
+def _scene_and_reference(args, parser, mi):
+    """(scene, its name, reference image, a line saying what the reference is)."""
+    from pmic_integrator import reference as refs, scenes
 
-    mi.set_variant(args.variant)
-    from pmic_integrator import compare, scenes
-    from pmic_integrator.metrics import tonemap_srgb
+    if args.scene in scenes.SCENES and not Path(args.scene).is_file():
+        if args.reference is not None or args.defines:
+            parser.error("a bundled scene takes neither --reference nor -D")
+        resolution = args.resolution or 512
+        try:
+            reference = scenes.load_reference(args.scene, resolution)
+        except FileNotFoundError as error:
+            parser.exit(2, f"pmic-compare: {error}\n")
+        scene = scenes.load_scene(args.scene, resolution=resolution, spp=args.spp)
+        return scene, args.scene, reference, f"bundled path reference ({resolution}x{resolution})"
+    path = Path(args.scene)
+    if not path.is_file():
+        parser.error(f"{args.scene!r} is neither a bundled scene ({', '.join(scenes.SCENES)}) nor a file")
+    if args.resolution is not None:
+        parser.error("--resolution is for bundled scenes: a scene file renders at its film's size "
+                     "(set it with -D if the file has a $ parameter for it)")
+    scene = scenes.load_file(path, {"type": "path"}, **_parse_defines(args.defines))
+    if args.reference is not None:
+        reference = scenes.read_exr(args.reference)
+        size = tuple(scene.sensors()[0].film().crop_size())[::-1]
+        if reference.shape[:2] != size:
+            parser.error(f"--reference {args.reference} is {reference.shape[1]}x{reference.shape[0]}; "
+                         f"the scene's film is {size[1]}x{size[0]}")
+        return scene, path.stem, reference, f"reference {args.reference}"
+    max_depth = _parse_settings(args.set).get("max_depth", -1)
+    print(f"path reference: {args.reference_time or args.reference_spp} "
+          f"{'s' if args.reference_time else 'spp'} (kept for the next runs) ...", flush=True)
+    ref = refs.cached_reference(scene, None if args.reference_time else args.reference_spp,
+                                args.reference_time, integrator={"max_depth": max_depth})
+    return scene, path.stem, ref.image, ref.describe()
 
-    spec = {"type": "pmic", **_parse_settings(args.set)}
-    mi.load_dict(dict(spec))  # checks the parameters before any heavy work
-    try:
-        reference = scenes.load_reference(args.scene, args.resolution)
-    except FileNotFoundError as error:
-        print(f"pmic-compare: {error}", file=sys.stderr)
-        return 2
-    scene = scenes.load_scene(args.scene, resolution=args.resolution, spp=args.spp)
-    print(f"scene {args.scene} at {args.resolution}x{args.resolution}, variant {args.variant}")
-    print("rendering with pmic (a warm-up render compiles the kernels first) ...", flush=True)
-    pmic = compare.render_measured(scene, spec, args.spp, reference, label="pmic", progress=True)
-    print(f"rendering with path for the same time ({pmic.seconds:.2f} s) ...", flush=True)
-    path = compare.path_at_equal_time(scene, pmic.seconds, reference)
-    results = [pmic, path]
-    if args.denoise:
-        print("rendering pmic + OIDN, then path + OIDN for the same time ...", flush=True)
-        pmic_dn = compare.render_measured(scene, spec, args.spp, reference, label="pmic+OIDN",
-                                          denoised=True)
-        path_dn = compare.path_at_equal_time(scene, pmic_dn.seconds, reference, denoised=True)
-        path_dn.label = "path+OIDN"
-        results += [pmic_dn, path_dn]
 
+def _print_results(results, spec, pmic, path, denoised):
     print()
     print(f"{'integrator':12s} {'spp':>6s} {'time [s]':>9s} {'relMSE':>10s} {'FLIP':>7s} "
           f"{'low-freq':>10s} {'RMSE':>9s} {'luminance':>10s} {'CIEDE2000':>10s}")
@@ -115,14 +136,12 @@ def main(argv=None) -> int:
         print(f"{r.label:12s} {r.spp:6d} {r.seconds:9.2f} {r.rel_mse:10.2e} {r.flip:7.3f} "
               f"{r.low_frequency:10.2e} {r.rmse:9.4f} {r.luminance_ratio:10.4f} {r.ciede2000:10.3f}")
     print("(low-freq = relMSE of both images blurred by a 4-pixel Gaussian: structured error)")
-    if args.denoise:
+    if denoised:
+        pmic_dn, path_dn = results[2], results[3]
         dn_ratio = path_dn.rel_mse / pmic_dn.rel_mse if pmic_dn.rel_mse > 0 else float("inf")
-        if dn_ratio >= 1:
-            print(f"Denoised, at equal time: pmic+OIDN's relMSE is {dn_ratio:.2f}x lower than "
-                  f"path+OIDN's.")
-        else:
-            print(f"Denoised, at equal time: path+OIDN's relMSE is {1 / dn_ratio:.2f}x lower than "
-                  f"pmic+OIDN's.")
+        better, factor = ("pmic+OIDN's", dn_ratio) if dn_ratio >= 1 else ("path+OIDN's", 1 / dn_ratio)
+        other = "path+OIDN's" if dn_ratio >= 1 else "pmic+OIDN's"
+        print(f"Denoised, at equal time: {better} relMSE is {factor:.2f}x lower than {other}.")
     ratio = path.rel_mse / pmic.rel_mse if pmic.rel_mse > 0 else float("inf")
     print("(relMSE = mean((img-ref)^2/(ref^2+0.01)); luminance = mean luminance / the reference's)")
     if ratio >= 1:
@@ -131,11 +150,11 @@ def main(argv=None) -> int:
         hints = []
         if pmic.stats.get("time_render", pmic.seconds) < 0.5 * pmic.seconds:
             hints.append("pmic's fixed cost, photons and cache, is most of this run: try more "
-                         "--spp or a larger --resolution")
+                         "--spp or a larger image")
         if spec.get("estimator", "final_gather") == "final_gather":
             hints.append("its default estimator (final gather) leaves noise for a denoiser to "
                          "remove: compare denoised with --denoise, or try --set estimator=first_hit")
-        hint = "; ".join(hints) or "see the README's results"
+        hint = "; ".join(hints) or "see docs/tuning.md"
         print(f"\nAt equal time, path's relMSE is {1 / ratio:.1f}x lower than pmic's ({hint}).")
     stats = pmic.stats
     stage_names = ("time_photons", "time_precompute", "time_cache", "time_cache_view", "time_render")
@@ -146,18 +165,73 @@ def main(argv=None) -> int:
           f"{f' ({probes} of them at surface probes)' if probes else ''}; first-run compile "
           f"overhead {pmic.compile_s:.2f} s")
 
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.spp < 1:
+        parser.error(f"--spp must be >= 1, got {args.spp}")
+    import mitsuba as mi
+
+    mi.set_variant(args.variant)
+    from pmic_integrator import compare, scenes
+
+    spec = {"type": "pmic", **_parse_settings(args.set)}
+    mi.load_dict(dict(spec))  # checks the parameters before any heavy work
+    scene, name, reference, what = _scene_and_reference(args, parser, mi)
+    film = scene.sensors()[0].film().crop_size()
+    print(f"scene {name} at {film[0]}x{film[1]}, variant {args.variant}; {what}")
+    results = compare.compare(scene, spec, args.spp, reference, args.denoise, progress=None,
+                              log=lambda line: print(line, flush=True))
+    pmic, path = results[0], results[1]
+    _print_results(results, spec, pmic, path, args.denoise)
+
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
     for r in results:
-        scenes.write_exr(out / f"{args.scene}_{r.label}.exr", r.image)
-    scenes.write_exr(out / f"{args.scene}_reference.exr", reference)
-    strip = np.concatenate([tonemap_srgb(pmic.image), tonemap_srgb(path.image), tonemap_srgb(reference)], 1)
-    mi.Bitmap(np.ascontiguousarray((strip * 255 + 0.5).clip(0, 255).astype(np.uint8))).write(
-        str(out / f"{args.scene}_pmic_path_reference.png"))
+        scenes.write_exr(out / f"{name}_{r.label}.exr", r.image)
+    scenes.write_exr(out / f"{name}_reference.exr", reference)
+    compare.write_strip(out / f"{name}_comparison.png", results, reference)
     (out / "results.json").write_text(json.dumps(
-        {"scene": args.scene, "resolution": args.resolution, "variant": args.variant,
+        {"scene": str(args.scene), "film": list(film), "variant": args.variant, "reference": what,
          "results": [r.row() for r in results]}, indent=2, default=str))
-    print(f"images and results.json written to {out.resolve()}")
+    print(f"images, {name}_comparison.png and results.json written to {out.resolve()}")
+    return 0
+
+
+def reference_main(argv=None) -> int:
+    """``pmic-reference scene.xml``: a path-traced reference of any scene file, to an
+    spp or a time budget, written as an EXR (its spp and noise in the header)."""
+    parser = argparse.ArgumentParser(
+        prog="pmic-reference",
+        description="Render a path-traced reference of a Mitsuba scene file (Mitsuba's path, "
+                    "unbounded, in 8 passes whose spread estimates the reference's own noise).")
+    parser.add_argument("scene", type=Path, help="Mitsuba XML scene file")
+    budget = parser.add_mutually_exclusive_group(required=True)
+    budget.add_argument("--spp", type=int, help="samples per pixel in all")
+    budget.add_argument("--time", type=float, metavar="SECONDS", help="render for about this long")
+    parser.add_argument("-D", dest="defines", action="append", metavar="KEY=VALUE", default=[],
+                        help="a value for the scene file's $KEY parameter (repeatable)")
+    parser.add_argument("--max-depth", type=int, default=-1, help="path's max_depth (default: -1)")
+    parser.add_argument("--sensor", type=int, default=0)
+    parser.add_argument("--output", "-o", type=Path, default=None,
+                        help="EXR file to write (default: SCENE_reference.exr beside this folder)")
+    parser.add_argument("--variant", default="llvm_ad_rgb")
+    args = parser.parse_args(argv)
+    import mitsuba as mi
+
+    mi.set_variant(args.variant)
+    from pmic_integrator import reference as refs, scenes
+
+    if not args.scene.is_file():
+        parser.error(f"no scene file {str(args.scene)!r}")
+    scene = scenes.load_file(args.scene, {"type": "path"}, **_parse_defines(args.defines))
+    ref = refs.render_reference(scene, args.spp, args.time, args.sensor, {"max_depth": args.max_depth},
+                                progress=None)
+    out = args.output or Path(f"{args.scene.stem}_reference.exr")
+    scenes.write_exr(out, ref.image, {"pmic_spp": ref.spp, "pmic_seconds": ref.seconds,
+                                      "pmic_noise": ref.noise, "pmic_integrator": "path"})
+    print(f"{ref.describe()}; written to {out.resolve()}")
     return 0
 
 

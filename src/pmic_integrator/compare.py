@@ -91,23 +91,26 @@ def score(result: RenderResult, reference: np.ndarray | None) -> RenderResult:
 
 
 def render_measured(scene, spec: dict, spp: int, reference=None, label=None, seed=0,
-                    denoised: bool = False, progress: bool = False) -> RenderResult:
+                    denoised: bool = False, progress: bool | None = False) -> RenderResult:
     """A 1-spp warm-up render, then the timed render, scored against ``reference``.
 
     The warm-up uses a separate integrator object, so the timed run rebuilds its
     photon maps and cache (a reused cache would hide their cost).
     ``compile_s`` is the warm-up's time minus what the timed run's stages would take
     at 1 spp: the cost of compiling kernels on a first run. ``progress``: progress
-    bars of the timed run's photon and cache stages on stderr.
+    bars of the timed run's photon and cache stages (None: where a person watches).
     """
     run_spec = with_guides(spec) if denoised else dict(spec)
     # The warm-up is another integrator object, so the timed run still builds its own
     # photon maps and cache; with the same settings it finds every kernel compiled
     # (photon and record counts, which depend on the seed, are baked into some).
-    _, cold_seconds = timed_render(scene, mi.load_dict(run_spec), 1, seed + 1, denoised)
+    warm_up = mi.load_dict(run_spec)
+    if hasattr(warm_up, "build_cache"):
+        warm_up.progress = False  # (its bars would only repeat the timed run's)
+    _, cold_seconds = timed_render(scene, warm_up, 1, seed + 1, denoised)
     integrator = mi.load_dict(run_spec)
-    if progress and hasattr(integrator, "build_cache"):  # pmic's stages
-        integrator.progress = True
+    if hasattr(integrator, "build_cache"):  # pmic's stages
+        integrator.progress = progress
     image, seconds = timed_render(scene, integrator, spp, seed, denoised)
     stats = dict(getattr(integrator, "stats", {}) or {})
     render_s = stats.get("time_render", seconds)
@@ -118,10 +121,11 @@ def render_measured(scene, spec: dict, spp: int, reference=None, label=None, see
 
 
 def path_at_equal_time(scene, seconds: float, reference=None, seed=0, max_spp=1 << 16,
-                       denoised: bool = False) -> RenderResult:
+                       denoised: bool = False, max_depth: int = -1) -> RenderResult:
     """Mitsuba's ``path`` (+ the denoiser) with the spp that fits in ``seconds``
-    (measured, not guessed)."""
-    spec = with_guides(PATH_INTEGRATOR) if denoised else dict(PATH_INTEGRATOR)
+    (measured, not guessed), paths as long as pmic's (``max_depth``)."""
+    base = {**PATH_INTEGRATOR, "max_depth": max_depth}
+    spec = with_guides(base) if denoised else dict(base)
     integrator = mi.load_dict(spec)
     _, cold = timed_render(scene, integrator, 1, seed + 1, denoised)  # compiles the kernel
     _, probe = timed_render(scene, integrator, 4, seed + 2, denoised)
@@ -132,6 +136,57 @@ def path_at_equal_time(scene, seconds: float, reference=None, seed=0, max_spp=1 
         # The probe's fixed overhead skews the rate: correct once from the real run.
         spp = int(max(1, min(max_spp, spp * seconds / took)))
         image, took = timed_render(scene, integrator, spp, seed, denoised)
-    result = RenderResult("path", dict(PATH_INTEGRATOR), spp, took, max(0.0, cold - probe / 4),
+    result = RenderResult("path", base, spp, took, max(0.0, cold - probe / 4),
                           denoised=denoised, image=image)
     return score(result, reference)
+
+
+def compare(scene, spec: dict | None = None, spp: int = 32, reference=None, denoised: bool = False,
+            progress: bool | None = None, log=None) -> list:
+    """pmic (``spec``: its parameters) at ``spp`` against ``path`` at equal wall time,
+    and with ``denoised`` both again through OIDN (same guides, denoiser time
+    included); each scored against ``reference`` (an H x W x 3 array, or None).
+    Returns the :class:`RenderResult` s: pmic, path[, pmic+OIDN, path+OIDN].
+    ``log``: a function given a line before each render (e.g. ``print``)."""
+    log = log or (lambda line: None)
+    spec = {"type": "pmic", **{k: v for k, v in (spec or {}).items() if k != "type"}}
+    mi.load_dict(dict(spec))  # checks the parameters before any heavy work
+    log("rendering with pmic (a warm-up render compiles the kernels first) ...")
+    pmic = render_measured(scene, spec, spp, reference, label="pmic", progress=progress)
+    log(f"rendering with path for the same time ({pmic.seconds:.2f} s) ...")
+    path = path_at_equal_time(scene, pmic.seconds, reference, max_depth=spec.get("max_depth", -1))
+    results = [pmic, path]
+    if denoised:
+        log("rendering pmic + OIDN, then path + OIDN for the same time ...")
+        pmic_dn = render_measured(scene, spec, spp, reference, label="pmic+OIDN", denoised=True)
+        path_dn = path_at_equal_time(scene, pmic_dn.seconds, reference, denoised=True,
+                                     max_depth=spec.get("max_depth", -1))
+        path_dn.label = "path+OIDN"
+        results += [pmic_dn, path_dn]
+    return results
+
+
+def write_strip(path, results, reference=None, exposure: float = 1.0) -> None:
+    """A PNG of the results' images side by side (and the reference), each titled with
+    its label, spp, time and relMSE (matplotlib, sRGB at ``exposure``)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    panels = [(f"{r.label}\n{r.spp} spp, {r.seconds:.2f} s"
+               + (f"\nrelMSE {r.rel_mse:.2e}" if math.isfinite(r.rel_mse) else ""), r.image)
+              for r in results]
+    if reference is not None:
+        panels.append(("reference (path)\n\n", reference))
+    height, width = panels[0][1].shape[:2]
+    scale = 3.0 / max(height, width) * max(1.0, min(height, width) / 160)
+    figure, axes = plt.subplots(1, len(panels), figsize=(len(panels) * width * scale / 1.0 + 0.2,
+                                                         height * scale + 0.9), squeeze=False)
+    for axis, (title, image) in zip(axes[0], panels):
+        axis.imshow(metrics.tonemap_srgb(image, exposure), interpolation="nearest")
+        axis.set_title(title, fontsize=9)
+        axis.axis("off")
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)

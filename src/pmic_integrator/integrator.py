@@ -10,7 +10,14 @@ from dataclasses import replace
 
 import drjit as dr
 import mitsuba as mi
-from mitsuba.ad.integrators.common import mis_weight
+
+if mi.variant() is None:
+    # This module defines a subclass of the variant's SamplingIntegrator, so it needs a
+    # variant; imported before one is chosen (``help(PMICIntegrator)`` in a fresh
+    # interpreter), it picks the CPU one, as most users would.
+    mi.set_variant("llvm_ad_rgb")
+
+from mitsuba.ad.integrators.common import mis_weight  # noqa: E402
 
 from . import cachefile, camera, pipeline, streams
 from ._jit import (ONE_MINUS_EPSILON, jittered, only_where, opaque_u32, shading_normal_on_side,
@@ -224,8 +231,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
            record), the rest by BSDF sampling, weighted by the mixture's
            density (unbiased). Cuts the noise from bright sources of bounced light
            (a lit ceiling, a door to a lit room); costs one record lookup per traced
-           vertex, so it is skipped in scenes lit almost only directly (under 25 % of
-           the records owe a quarter of their light to bounces). Where a few records
+           vertex, so it is skipped in scenes lit almost only directly (where the
+           records that owe a quarter of their light to bounces cover under 12.5 % of
+           the records' area). Where a few records
            are far brighter than the rest and hold much of the cache's power (the
            inside of a lampshade), a quarter of the rays is also drawn towards them
            (groups of them as spherical lights, ``pmic_integrator.lights``), which
@@ -268,9 +276,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
     2.9); a bad type or value raises ValueError naming it, before any work.
 
     After ``mi.render``, ``scene.integrator().stats`` (or this object's ``stats``)
-    holds counts and per-stage times in seconds. Set ``integrator.progress = True``
-    (``pmic-compare`` and ``pmic-render-views`` do) for progress bars of the photon and
-    cache stages on stderr; they are logged at Mitsuba's Info level either way.
+    holds counts and per-stage times in seconds. Progress bars of the photon and cache
+    stages (tqdm, in a terminal or Jupyter) appear for stages longer than a second where
+    a person watches; ``integrator.progress = False`` (or True) turns them off (or on
+    everywhere). Photon counts are logged at Mitsuba's Info level either way.
     ``integrator.prepared`` is the photon maps and cache of the last scene
     (:class:`pmic_integrator.pipeline.PreparedScene`).
 
@@ -295,8 +304,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
         #: What sample() reads: the prepared scene of the last render, or its copy
         #: with the view's own records (``irradiance_cache``).
         self._view: PreparedScene | None = None
-        #: Progress bars of the photon and cache stages on stderr (the CLI sets it).
-        self.progress = False
+        #: Progress bars of the photon and cache stages (tqdm): True, False, or None:
+        #: on where a person watches (a terminal, Jupyter; pipeline.interactive).
+        self.progress = None
         self._cache_builds = 0  #: view-independent caches built from photons so far
         # One render at a time per integrator object: the prepared scene and the
         # per-render state below are shared by render() and the sample() it (or a

@@ -261,34 +261,53 @@ class PreparedScene:
 
 # ----------------------------------------------------------------------------------------
 # Progress
+#: Seconds a stage runs before its progress bar appears: shorter stages show none.
+PROGRESS_DELAY = 1.0
 # ----------------------------------------------------------------------------------------
-class Progress:
-    """Progress bars of the stages on stderr when ``enabled`` (the CLI turns it on),
-    one line per stage; photon counts go to Mitsuba's log at Info level always."""
+def interactive() -> bool:
+    """Whether a person is watching: standard error is a terminal, or this runs in
+    IPython or Jupyter (progress bars are then on by default)."""
+    if "ipykernel" in sys.modules or hasattr(sys, "ps1"):
+        return True
+    return bool(getattr(sys.stderr, "isatty", lambda: False)())
 
-    def __init__(self, enabled: bool = False, stream=None):
-        self.enabled = enabled
+
+class Progress:
+    """Progress bars of the stages (tqdm: a terminal or a Jupyter notebook), one per
+    stage, shown once a stage has run for :data:`PROGRESS_DELAY` seconds. ``enabled``:
+    True, False, or None for :func:`interactive`. Photon counts go to Mitsuba's log at
+    Info level always."""
+
+    def __init__(self, enabled: bool | None = None, stream=None, delay: float = None):
+        self.enabled = interactive() if enabled is None else bool(enabled)
         self.stream = stream if stream is not None else sys.stderr
-        self._open = None
+        self.delay = PROGRESS_DELAY if delay is None else delay
+        self._bars: dict = {}
+
+    def _bar(self, stage: str):
+        from tqdm.auto import tqdm
+
+        if stage not in self._bars:
+            self._bars[stage] = tqdm(total=100, desc=stage, unit="%", file=self.stream, leave=True,
+                                     delay=self.delay, mininterval=0.1, bar_format="{desc:22s} {percentage:3.0f}%|{bar}| "
+                                     "{elapsed} {postfix}")
+        return self._bars[stage]
 
     def update(self, stage: str, fraction: float, detail: str = ""):
-        fraction = min(max(float(fraction), 0.0), 1.0)
-        # Redrawn in place on a terminal; in a log file, one line per finished stage.
-        tty = getattr(self.stream, "isatty", lambda: False)()
-        if self.enabled and (tty or fraction >= 1.0):
-            filled = int(30 * fraction)
-            self.stream.write(f"\r{stage:22s} [{'#' * filled}{'.' * (30 - filled)}] "
-                              f"{100 * fraction:3.0f}% {detail}".ljust(96))
-            self._open = stage
-            if fraction >= 1.0:
-                self.stream.write("\n")
-                self._open = None
-            self.stream.flush()
+        if not self.enabled:
+            return
+        bar = self._bar(stage)
+        bar.set_postfix_str(detail, refresh=False)
+        # (update() draws only once the bar's delay has passed, and at most every 0.1 s)
+        bar.update(int(100 * min(max(float(fraction), 0.0), 1.0)) - bar.n)
+        if fraction >= 1.0:
+            bar.close()
+            del self._bars[stage]
 
     def photons(self, kind, stored, target, emitted):
         """The photon tracer's callback."""
         mi.Log(mi.LogLevel.Info, f"pmic: {kind} photons {stored}/{target} ({emitted} paths emitted)")
-        # Below 1: the stage's line is finished by done(), once, with the stored count.
+        # Below 1: the stage's bar is finished by done(), once, with the stored count.
         self.update(f"photons ({kind})", min(stored / max(target, 1), 0.999), f"{emitted} paths")
 
     def done(self, stage: str, detail: str = ""):
@@ -332,6 +351,15 @@ def warn_of_media(scene: mi.Scene) -> None:
                       RuntimeWarning, stacklevel=4)
 
 
+def warn_if_unlit(scene: mi.Scene) -> None:
+    """Warn where a scene has no emitter: its image is black (as with ``path``), which a
+    user would otherwise take for a failure of the integrator."""
+    if not scene.emitters():
+        warnings.warn("the scene has no emitter, so its image is black (with path too): add a light, "
+                      "e.g. an 'area' emitter on a shape, an 'envmap' or a 'constant' environment",
+                      RuntimeWarning, stacklevel=4)
+
+
 # ----------------------------------------------------------------------------------------
 # The pipeline
 # ----------------------------------------------------------------------------------------
@@ -346,6 +374,7 @@ def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
     check_against_scene(settings, info.surface_area, info.diagonal)
     check_environment_maps(scene)
     warn_of_media(scene)
+    warn_if_unlit(scene)
     stats = {}
     need_global, need_caustic, skipped = plan_passes(info, settings)
 

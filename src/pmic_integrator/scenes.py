@@ -44,16 +44,17 @@ DEFAULT_RESOLUTION = 128
 
 
 def scenes_dir() -> Path:
-    """Folder with the scene XML files: ``$PMIC_SCENES_DIR`` or the repository's ``scenes/``.
-
-    The default is found relative to this file (``src/pmic_integrator/scenes.py`` ->
-    ``scenes/``), which holds for a source checkout and for an editable install. A regular
-    (non-editable) install does not ship the scenes: set ``PMIC_SCENES_DIR`` then.
-    """
+    """Folder with the scene XML files: ``$PMIC_SCENES_DIR``, else the repository's
+    ``scenes/`` (a checkout or an editable install: ``src/pmic_integrator/scenes.py`` ->
+    ``scenes/``), else the package's own copy (``pmic_integrator/data``, what
+    ``pip install .`` installs)."""
     override = os.environ.get(SCENES_DIR_ENV)
     if override:
         return Path(override).expanduser().resolve()
-    return Path(__file__).resolve().parents[2] / "scenes"
+    checkout = Path(__file__).resolve().parents[2] / "scenes"
+    if (checkout / "cornell_box.xml").is_file():
+        return checkout
+    return Path(__file__).resolve().parent / "data"
 
 
 def _check_name(name: str) -> str:
@@ -114,6 +115,24 @@ def make_integrator(integrator: Mapping[str, Any] | None = None):
     if "type" not in spec:
         raise ValueError(f"integrator must have a 'type' key; got {spec!r}")
     return mi.load_dict(spec)
+
+
+def load_file(path: str | os.PathLike, integrator: Mapping[str, Any] | Any | None = None, **params):
+    """Load any Mitsuba scene file with ``pmic`` as its integrator, whatever the file
+    says (or has no integrator at all).
+
+    ``integrator``: pmic's parameters as a dict (``{"global_photons": 400_000}``; a dict
+    with a ``type`` is any integrator's ``mi.load_dict`` dictionary), or an integrator
+    object. ``params``: values for the file's ``$name`` parameters, as
+    ``mi.load_file`` takes them (``spp=64``, ``res=256``).
+    """
+    mi = _mitsuba()
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"load_file: no scene file {str(path)!r}")
+    if not isinstance(integrator, mi.Integrator):
+        spec = dict(integrator or {})
+        integrator = mi.load_dict({"type": "pmic", **spec} if "type" not in spec else spec)
+    return _with_integrator(mi.load_file(str(path), **params), integrator)
 
 
 def _with_integrator(scene, integrator):

@@ -122,6 +122,7 @@ class Settings:
     def parse(props) -> "Settings":
         """Read and check every parameter; raise ValueError naming the first bad
         one."""
+        check_names(props)
         reader = _Reader(props)
         defaults = Settings()
         values = {f.name: reader.get(f.name, _KINDS[f.type], getattr(defaults, f.name))
@@ -221,6 +222,25 @@ class Settings:
         if self.method != "pmic":
             values["estimator"] = "(not used)"
         return tuple(values.items())
+
+
+#: Parameters Mitsuba's SamplingIntegrator reads itself (pmic reads hide_emitters too).
+MITSUBA_PARAMETERS = ("timeout", "samples_per_pass")
+
+
+def check_names(props) -> None:
+    """Refuse a parameter pmic does not have, suggesting the nearest name (Mitsuba's own
+    "unreferenced property" error names it but suggests nothing)."""
+    import difflib
+
+    known = [f.name for f in fields(Settings)]
+    for name in props.keys():
+        if name in known or name in MITSUBA_PARAMETERS:
+            continue
+        close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+        hint = f"did you mean '{close[0]}'? " if close else ""
+        raise ValueError(f"integrator 'pmic': unknown parameter '{name}' ({hint}pmic's parameters: "
+                         f"{', '.join(known)})")
 
 
 def rays_strata(rays: int) -> tuple[int, int]:
