@@ -41,6 +41,14 @@ RESULTS = Path(__file__).resolve().parent / "results"
 SCENE = "indirect_room"
 #: pmic's settings for the frames: the defaults but for the spp.
 PMIC_SPP = 4
+#: pmic's settings for the frames: (parameters, spp). The defaults; and what flickers
+#: least at this time per frame (docs/flythrough.md): the first-hit read, whose cache
+#: error is the same in every frame, with more spp and one shadow ray per vertex.
+PMIC_CONFIGS = {"pmic+OIDN, defaults, 4 spp": ({}, 4),
+                "pmic+OIDN, first_hit, direct_samples 1, 8 spp": ({"estimator": "first_hit",
+                                                                    "direct_samples": 1}, 8)}
+#: path + OIDN's spp ladder (its flicker is read at pmic's time per frame along it).
+PATH_SPP = (2, 3, 4, 6, 8, 12)
 #: Spp of each moving frame's path reference (noise of the flicker's reference term).
 REFERENCE_SPP = 4096
 
@@ -111,7 +119,10 @@ def equal_time_spp(scene, integrator, frames, seconds, denoised, rounds: int = 3
 
 
 def measure_flicker(resolution: int, count: int, log):
-    from pmic_integrator import compare, metrics, scenes
+    """Flicker of pmic + OIDN in each of :data:`PMIC_CONFIGS`, against path + OIDN at
+    the same time per frame (path's flicker interpolated log-log along its spp ladder
+    :data:`PATH_SPP`), for a still and a moving camera."""
+    from pmic_integrator import compare, scenes
     from pmic_integrator.views import frames_along_path
 
     scene = scenes.load_scene(SCENE, resolution=resolution, spp=PMIC_SPP)
@@ -119,28 +130,46 @@ def measure_flicker(resolution: int, count: int, log):
     out = {}
     for moving in (False, True):
         frames = frames_along_path("(in memory)", camera_keys(scene, moving, count), count, seed=100)
-        pmic = mi.load_dict(compare.with_guides({"type": "pmic"}))
-        render_frames_local(scene, pmic, frames[:1], 1, True)  # warm-up: cache and kernels
-        pmic_images, pmic_seconds = render_frames_local(scene, pmic, frames, PMIC_SPP, True)
-        per_frame = float(np.median(pmic_seconds))
-        path = mi.load_dict(compare.with_guides(compare.PATH_INTEGRATOR))
-        path_spp = equal_time_spp(scene, path, frames, per_frame, True)
-        path_images, path_seconds = render_frames_local(scene, path, frames, path_spp, True)
         if moving:
             references, reference_flicker = path_references(scene, frames, REFERENCE_SPP)
         else:  # one reference: its noise is the same in every frame and cancels
             references, reference_flicker = [still_reference] * count, 0.0
-        row = {"frames": count, "pmic_spp": PMIC_SPP, "pmic_s_per_frame": per_frame,
-               "path_spp": path_spp, "path_s_per_frame": float(np.median(path_seconds)),
-               "reference_flicker": reference_flicker,
-               "flicker_pmic_oidn": flicker(pmic_images, references) - reference_flicker,
-               "flicker_path_oidn": flicker(path_images, references) - reference_flicker,
-               "relmse_pmic_oidn": float(np.mean([metrics.rel_mse(a, b) for a, b in zip(pmic_images, references)])),
-               "relmse_path_oidn": float(np.mean([metrics.rel_mse(a, b) for a, b in zip(path_images, references)]))}
-        row["ratio"] = row["flicker_pmic_oidn"] / row["flicker_path_oidn"]
-        out["moving" if moving else "static"] = row
-        log(f"flicker, {'moving' if moving else 'static'} camera: {row}")
+        path = mi.load_dict(compare.with_guides(compare.PATH_INTEGRATOR))
+        render_frames_local(scene, path, frames[:1], 1, True)  # warm-up
+        ladder = []
+        for spp in PATH_SPP:
+            images, seconds = render_frames_local(scene, path, frames, spp, True)
+            ladder.append(_sequence_row(images, seconds, spp, references, reference_flicker))
+        rows = {}
+        for label, (params, spp) in PMIC_CONFIGS.items():
+            pmic = mi.load_dict(compare.with_guides({"type": "pmic", **params}))
+            render_frames_local(scene, pmic, frames[:1], 1, True)  # warm-up: cache and kernels
+            images, seconds = render_frames_local(scene, pmic, frames, spp, True)
+            row = _sequence_row(images, seconds, spp, references, reference_flicker)
+            row["path_flicker_at_equal_time"] = _at_time(ladder, row["s_per_frame"])
+            row["flicker_vs_path"] = row["flicker"] / row["path_flicker_at_equal_time"]
+            rows[label] = row
+        camera = "moving" if moving else "static"
+        out[camera] = {"frames": count, "reference_flicker": reference_flicker, "rows": rows,
+                       "path_ladder": ladder}
+        log(f"flicker, {camera} camera: {out[camera]}")
     return out
+
+
+def _at_time(ladder, seconds: float) -> float:
+    """Path's flicker at ``seconds`` per frame: log-log interpolation along its ladder
+    (clamped at its ends)."""
+    points = sorted((row["s_per_frame"], row["flicker"]) for row in ladder)
+    times, values = np.log([p[0] for p in points]), np.log([max(p[1], 1e-12) for p in points])
+    return float(np.exp(np.interp(np.log(seconds), times, values)))
+
+
+def _sequence_row(images, seconds, spp, references, reference_flicker) -> dict:
+    from pmic_integrator import metrics
+
+    return {"spp": spp, "s_per_frame": float(np.median(seconds)),
+            "flicker": flicker(images, references) - reference_flicker,
+            "relmse": float(np.mean([metrics.rel_mse(a, b) for a, b in zip(images, references)]))}
 
 
 def measure_fps(resolution: int, count: int, log):
@@ -253,16 +282,18 @@ def write_markdown(results, path: Path):
                   f"{r['ratio']:.2f}× |", ""]
     if "flicker" in results:
         lines += ["## Flicker at equal time per frame", "",
-                  "| camera | frames | pmic+OIDN spp | s/frame | path+OIDN spp | s/frame | flicker pmic+OIDN | "
-                  "flicker path+OIDN | ratio | relMSE pmic+OIDN | relMSE path+OIDN | references' own flicker "
-                  "(subtracted) |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-        for camera, r in results["flicker"].items():
-            lines.append(f"| {camera} | {r['frames']} | {r['pmic_spp']} | {r['pmic_s_per_frame']:.2f} | "
-                         f"{r['path_spp']} | {r['path_s_per_frame']:.2f} | {r['flicker_pmic_oidn']:.2e} | "
-                         f"{r['flicker_path_oidn']:.2e} | {r['ratio']:.3f} | {r['relmse_pmic_oidn']:.2e} | "
-                         f"{r['relmse_path_oidn']:.2e} | {r['reference_flicker']:.1e} |")
-        lines.append("")
+                  "| camera | frames | images | spp | s/frame | flicker | path+OIDN's flicker at that time | "
+                  "ratio | relMSE |", "|---|---|---|---|---|---|---|---|---|"]
+        for camera, cam in results["flicker"].items():
+            for label, r in cam["rows"].items():
+                lines.append(f"| {camera} | {cam['frames']} | {label} | {r['spp']} | {r['s_per_frame']:.3f} | "
+                             f"{r['flicker']:.2e} | {r['path_flicker_at_equal_time']:.2e} | "
+                             f"{r['flicker_vs_path']:.3f} | {r['relmse']:.2e} |")
+            for r in cam["path_ladder"]:
+                lines.append(f"| {camera} | {cam['frames']} | path+OIDN | {r['spp']} | {r['s_per_frame']:.3f} | "
+                             f"{r['flicker']:.2e} | | | {r['relmse']:.2e} |")
+        lines += ["", "Flicker less the references' own: "
+                  + ", ".join(f"{c} {cam['reference_flicker']:.1e}" for c, cam in results["flicker"].items()), ""]
     if "fingerprint" in results:
         r = results["fingerprint"]
         lines += ["## Scene fingerprint", "",
@@ -288,8 +319,11 @@ def main(argv=None):
     args = parser.parse_args(argv)
     every = not (args.fps or args.flicker or args.fingerprint or args.freeze)
     mi.set_variant("llvm_ad_rgb")
-    results = {"machine": f"{platform.processor() or platform.machine()}, {dr.thread_count()} threads",
-               "resolution": args.resolution}
+    # Measurements not asked for this time keep their last figures.
+    kept = args.out / "flythrough.json"
+    results = json.loads(kept.read_text()) if kept.is_file() else {}
+    results.update({"machine": f"{platform.processor() or platform.machine()}, {dr.thread_count()} threads",
+                    "resolution": args.resolution})
     log = print
     if every or args.fingerprint:
         results["fingerprint"] = measure_fingerprint(log)
