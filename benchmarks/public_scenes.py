@@ -1,0 +1,143 @@
+"""pmic, pmic + OIDN, path and path + OIDN at equal time on the public scenes.
+
+For every scene of ``../shared/scenes`` with a reference (its own ``refs/`` or this
+project's ``benchmarks/references/public``, made by ``public_references.py``): pmic with
+its default settings at ``--spp``, then ``path`` with the spp that fits the same wall
+time; the same again through OIDN (same albedo and normal guides, denoiser time
+included). Each image is scored against the reference: mean luminance over the
+reference's, relMSE less the reference's own noise, FLIP, NaN/Inf. Equal-error
+speed-ups: raw path's relMSE falls as c/t (unbiased Monte Carlo), so path would reach
+pmic's error in c/e seconds; path + OIDN's does not, so it runs a ladder of 1, 2, 4 and 8
+times the equal-time spp and its time to pmic + OIDN's error is read log-log along it
+(extrapolated from its last two runs beyond them, marked "~"). A speed-up over 1: pmic
+reaches the error sooner.
+
+    python benchmarks/public_scenes.py                  # every scene with a reference
+    python benchmarks/public_scenes.py --scenes torus sponza --spp 32
+
+Writes benchmarks/results/public_scenes.json and .md and a labelled strip per scene
+(benchmarks/results/public_<scene>.png).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+from pathlib import Path
+
+import pmic_integrator  # noqa: F401  (LLVM set-up before Mitsuba)
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from public_references import OUT as PROJECT_REFS, SHARED, load
+
+RESULTS = Path(__file__).resolve().parent / "results"
+ORDER = ("veach_bidir", "matpreview", "dining_room", "white_room", "sponza", "torus", "cornell_glossy")
+
+
+def reference_of(name: str):
+    """(image, its own noise relMSE, where it came from), or None."""
+    from pmic_integrator.scenes import read_exr
+
+    shared = SHARED / "refs" / f"{name}.npy"
+    if shared.is_file():
+        info = json.loads((SHARED / "refs" / f"{name}.json").read_text())
+        return np.load(shared)[..., :3].astype(np.float32), info["ref_noise_relmse"], f"shared refs ({info['spp_total']} spp)"
+    own = PROJECT_REFS / f"{name}.exr"
+    if own.is_file():
+        info = json.loads((PROJECT_REFS / f"{name}.json").read_text())
+        return read_exr(own), info["noise_relmse"], f"project ({info['spp']} spp)"
+    return None
+
+
+def time_to_error(points, target):
+    """Seconds at which the log-log curve through ``points`` ((time, relMSE), rising
+    time) reaches ``target``; beyond the last point, extrapolated along the last two.
+    Returns (seconds, extrapolated)."""
+    points = sorted(points)
+    logs = [(math.log(t), math.log(max(e, 1e-12))) for t, e in points]
+    goal = math.log(max(target, 1e-12))
+    if goal >= logs[0][1]:
+        return points[0][0] * (points[0][1] / max(target, 1e-12)), True  # as 1/t before the first
+    for (t0, e0), (t1, e1) in zip(logs, logs[1:]):
+        if e1 <= goal <= e0 and e0 != e1:
+            return math.exp(t0 + (goal - e0) * (t1 - t0) / (e1 - e0)), False
+    (t0, e0), (t1, e1) = logs[-2], logs[-1]
+    slope = (e1 - e0) / (t1 - t0) if t1 != t0 else -1.0
+    if slope >= -1e-3:
+        return math.inf, True  # the denoised curve stopped falling
+    return math.exp(t1 + (goal - e1) / slope), True
+
+
+def measure(name: str, spp: int, log):
+    from pmic_integrator import compare, metrics
+
+    found = reference_of(name)
+    if found is None:
+        return None
+    ref, noise, origin = found
+    scene = load(name)
+    results = compare.compare(scene, {}, spp, ref, denoised=True, log=log)
+    pmic, path, pmic_dn, path_dn = results
+    row = {"scene": name, "reference": origin, "reference_noise": noise}
+    for r in results:
+        row[r.label] = {"spp": r.spp, "seconds": r.seconds, "rel_mse": r.rel_mse - noise, "flip": r.flip,
+                        "luminance": r.luminance_ratio, "finite": metrics.finite(r.image)}
+    c = max(path.rel_mse - noise, 1e-12) * path.seconds
+    row["speedup"] = (c / max(pmic.rel_mse - noise, 1e-12)) / pmic.seconds
+    integrator = mi.load_dict(compare.with_guides(compare.PATH_INTEGRATOR))
+    ladder = [(path_dn.seconds, max(path_dn.rel_mse - noise, 1e-12))]
+    for factor in (2, 4, 8):
+        image, seconds = compare.timed_render(scene, integrator, path_dn.spp * factor, 7 + factor, True)
+        ladder.append((seconds, max(metrics.rel_mse(image, ref) - noise, 1e-12)))
+    t_path_dn, extrapolated = time_to_error(ladder, max(pmic_dn.rel_mse - noise, 1e-12))
+    row["speedup_oidn"] = t_path_dn / pmic_dn.seconds
+    row["speedup_oidn_extrapolated"] = extrapolated
+    row["path_oidn_ladder"] = ladder
+    row["stats"] = {k: v for k, v in pmic.stats.items() if isinstance(v, (int, float, str))}
+    compare.write_strip(RESULTS / f"public_{name}.png", results, ref)
+    log(f"{name}: {json.dumps({k: row[k] for k in ('speedup', 'speedup_oidn')})}")
+    return row
+
+
+def write_markdown(rows, spp: int, path: Path):
+    lines = ["# Public scenes: pmic against path at equal time", "",
+             f"`python benchmarks/public_scenes.py --spp {spp}` ({platform.machine()}, "
+             f"{dr.thread_count()} threads); pmic with its default settings at {spp} spp. relMSE is "
+             "less the reference's own noise; speed-up = how much sooner pmic reaches its error "
+             "than path (or path + OIDN) would (~: path + OIDN's curve extrapolated).", "",
+             "| scene | reference (noise) | pmic luminance | pmic relMSE | path relMSE | speed-up vs path | "
+             "pmic+OIDN luminance | pmic+OIDN relMSE | path+OIDN relMSE | speed-up vs path+OIDN | "
+             "pmic s | FLIP pmic / path | finite |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        p, q, pd, qd = r["pmic"], r["path"], r["pmic+OIDN"], r["path+OIDN"]
+        mark = "~" if r["speedup_oidn_extrapolated"] else ""
+        lines.append(f"| {r['scene']} | {r['reference']} ({r['reference_noise']:.1e}) | {p['luminance']:.3f} | "
+                     f"{p['rel_mse']:.2e} | {q['rel_mse']:.2e} | {r['speedup']:.2f}× | {pd['luminance']:.3f} | "
+                     f"{pd['rel_mse']:.2e} | {qd['rel_mse']:.2e} | {mark}{r['speedup_oidn']:.2f}× | "
+                     f"{p['seconds']:.1f} | {p['flip']:.3f} / {q['flip']:.3f} | "
+                     f"{all(x['finite'] for x in (p, q, pd, qd))} |")
+    lines += ["", "Images: `benchmarks/results/public_<scene>.png` (pmic, path, pmic+OIDN, path+OIDN, "
+              "reference; each labelled with its spp, time and relMSE).", ""]
+    path.write_text("\n".join(lines))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="+", default=list(ORDER))
+    parser.add_argument("--spp", type=int, default=16)
+    args = parser.parse_args(argv)
+    mi.set_variant("llvm_ad_rgb")
+    rows = [row for name in args.scenes if (row := measure(name, args.spp, print)) is not None]
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "public_scenes.json").write_text(json.dumps(rows, indent=1, default=str))
+    write_markdown(rows, args.spp, RESULTS / "public_scenes.md")
+    print(f"written {RESULTS / 'public_scenes.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
