@@ -7,7 +7,7 @@ time; the same again through OIDN (same albedo and normal guides, denoiser time
 included). Each image is scored against the reference: mean luminance over the
 reference's, relMSE less the reference's own noise, FLIP, NaN/Inf. Equal-error
 speed-ups: raw path's relMSE falls as c/t (unbiased Monte Carlo), so path would reach
-pmic's error in c/e seconds; path + OIDN's does not, so it runs a ladder of 1, 2, 4 and 8
+pmic's error in c/e seconds; path + OIDN's does not, so it runs a ladder of 1, 2 and 4
 times the equal-time spp and its time to pmic + OIDN's error is read log-log along it
 (extrapolated from its last two runs beyond them, marked "~"). A speed-up over 1: pmic
 reaches the error sooner.
@@ -89,7 +89,7 @@ def measure(name: str, spp: int, log):
     row["speedup"] = (c / max(pmic.rel_mse - noise, 1e-12)) / pmic.seconds
     integrator = mi.load_dict(compare.with_guides(compare.PATH_INTEGRATOR))
     ladder = [(path_dn.seconds, max(path_dn.rel_mse - noise, 1e-12))]
-    for factor in (2, 4, 8):
+    for factor in (2, 4):
         image, seconds = compare.timed_render(scene, integrator, path_dn.spp * factor, 7 + factor, True)
         ladder.append((seconds, max(metrics.rel_mse(image, ref) - noise, 1e-12)))
     t_path_dn, extrapolated = time_to_error(ladder, max(pmic_dn.rel_mse - noise, 1e-12))

@@ -7,8 +7,6 @@ the variant changes.
 """
 from __future__ import annotations
 
-import functools
-
 import mitsuba as mi
 
 PLUGIN_NAME = "pmic"
@@ -52,13 +50,6 @@ def _unsupported(variant: str):
     )
 
 
-class _mitsuba_render_doc:  # what functools.update_wrapper copies: mi.render's name and doc
-    __module__ = "mitsuba"
-    __name__ = __qualname__ = "render"
-    __doc__ = ("Mitsuba's mi.render (see its documentation); errors raised inside pmic's render() "
-               "reach the caller as themselves instead of as Dr.Jit's custom-operation error.")
-
-
 def _on_variant_change(old, new) -> None:
     if new is not None:
         register(new)
@@ -68,37 +59,26 @@ def _is_pmic(integrator) -> bool:
     return type(integrator).__module__.startswith("pmic_integrator")
 
 
-def _render_with_own_errors(*args, **kwargs):
-    """``mi.render``, but an error raised inside pmic's ``render()`` reaches the caller
-    as itself. Mitsuba runs an integrator's ``render()`` inside Dr.Jit's custom
-    operation, which replaces any error by ``drjit.custom(<..._RenderOp>): error while
-    performing a custom differentiable operation. (see above)``; the user's own error
-    (a cache file of another scene, a lookup_radius too large for this scene) is then
-    only its ``__cause__``. Other integrators' errors are left as Mitsuba raises them."""
+def _render_with_own_errors(scene, params=None, sensor=0, integrator=None, seed=0, seed_grad=0,
+                            spp=0, spp_grad=0):
+    """Mitsuba's ``mi.render`` (same parameters; see its documentation), except that an
+    error raised inside pmic's ``render()`` reaches the caller as itself.
+
+    Mitsuba runs an integrator's ``render()`` inside Dr.Jit's custom operation, which
+    replaces any error by ``drjit.custom(<..._RenderOp>): error while performing a
+    custom differentiable operation. (see above)``: the user's own error (a cache file
+    of another scene, a lookup_radius too large for the scene) would only be its
+    ``__cause__``. Other integrators' errors are left as Mitsuba raises them."""
     from mitsuba.python.util import render
 
     try:
-        return render(*args, **kwargs)
+        return render(scene, params, sensor, integrator, seed, seed_grad, spp, spp_grad)
     except RuntimeError as error:
         cause = error.__cause__
-        bound = _RENDER_SIGNATURE.bind_partial(*args, **kwargs).arguments
-        integrator = bound.get("integrator") or bound["scene"].integrator()
-        if cause is None or not _is_pmic(integrator) or "drjit.custom" not in str(error):
+        used = integrator if integrator is not None else scene.integrator()
+        if cause is None or not _is_pmic(used) or "drjit.custom" not in str(error):
             raise
         raise cause from None
-
-
-def _render_signature():
-    import inspect
-
-    def render(scene, params=None, sensor=0, integrator=None, seed=0, seed_grad=0, spp=0,
-               spp_grad=0):  # mi.render's own parameters (Mitsuba 3.9)
-        pass
-
-    return inspect.signature(render)
-
-
-_RENDER_SIGNATURE = _render_signature()
 
 
 def install() -> None:
@@ -107,7 +87,6 @@ def install() -> None:
     global _installed
     if not _installed:
         mi.detail.add_variant_callback(_on_variant_change)
-        functools.update_wrapper(_render_with_own_errors, _mitsuba_render_doc)
         mi.render = _render_with_own_errors
         _installed = True
     if mi.variant() is not None:

@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _scene_and_reference(args, parser, mi):
+def _scene_and_reference(args, parser):
     """(scene, its name, reference image, a line saying what the reference is)."""
     from pmic_integrator import reference as refs, scenes
 
@@ -178,7 +178,7 @@ def main(argv=None) -> int:
 
     spec = {"type": "pmic", **_parse_settings(args.set)}
     mi.load_dict(dict(spec))  # checks the parameters before any heavy work
-    scene, name, reference, what = _scene_and_reference(args, parser, mi)
+    scene, name, reference, what = _scene_and_reference(args, parser)
     film = scene.sensors()[0].film().crop_size()
     print(f"scene {name} at {film[0]}x{film[1]}, variant {args.variant}; {what}")
     results = compare.compare(scene, spec, args.spp, reference, args.denoise, progress=None,
