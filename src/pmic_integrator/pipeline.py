@@ -261,9 +261,11 @@ class PreparedScene:
 
 # ----------------------------------------------------------------------------------------
 # Progress
+# ----------------------------------------------------------------------------------------
 #: Seconds a stage runs before its progress bar appears: shorter stages show none.
 PROGRESS_DELAY = 1.0
-# ----------------------------------------------------------------------------------------
+
+
 def interactive() -> bool:
     """Whether a person is watching: standard error is a terminal, or this runs in
     IPython or Jupyter (progress bars are then on by default)."""
@@ -278,7 +280,7 @@ class Progress:
     True, False, or None for :func:`interactive`. Photon counts go to Mitsuba's log at
     Info level always."""
 
-    def __init__(self, enabled: bool | None = None, stream=None, delay: float = None):
+    def __init__(self, enabled: bool | None = None, stream=None, delay: float | None = None):
         self.enabled = interactive() if enabled is None else bool(enabled)
         self.stream = stream if stream is not None else sys.stderr
         self.delay = PROGRESS_DELAY if delay is None else delay
