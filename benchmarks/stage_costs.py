@@ -28,6 +28,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from pmic_integrator import metrics
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 TORI = 18
@@ -153,7 +155,7 @@ def main(argv=None):
                 best = (seconds, stats, image)
         seconds, stats, image = best
         render_s = stats.get("time_render", seconds)
-        row = {"method": label, "total_s": seconds, "luminance": float(np.mean(image[..., :3] @ [0.2126, 0.7152, 0.0722])),
+        row = {"method": label, "total_s": seconds, "luminance": metrics.mean_luminance(image[..., :3]),
                "finite": bool(np.isfinite(image).all()),
                **{k: stats[k] for k in ("time_photons", "time_precompute", "time_cache", "time_render",
                                         "records", "photons_global", "photons_caustic") if k in stats},

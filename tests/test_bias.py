@@ -17,7 +17,7 @@ import scene_builders as sb
 
 #: Default photon counts (at 50k the edge bias of density estimates alone is ~2 %).
 SMALL = {"global_photons": 200_000, "caustic_photons": 50_000, "gather_rays": 128}
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+from pmic_integrator.metrics import REC709_LUMINANCE as LUMINANCE  # noqa: E402
 #: Pixels brighter than this in path's image see an emitter (the scenes' surfaces stay
 #: below 1): they and their neighbours (partly covered by the emitter: at 16 spp their
 #: sampling moved the whole mean by ±5 % with the sampler's seed, for path as for pmic)

@@ -12,7 +12,7 @@ import scene_builders as sb
 from pmic_integrator import bsdfs, gather, pipeline
 from pmic_integrator.settings import Settings
 
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+from pmic_integrator.metrics import REC709_LUMINANCE as LUMINANCE  # noqa: E402
 
 
 def _rough_plastic(rgb, alpha=0.6, int_ior=2.5):
