@@ -32,25 +32,25 @@ def _parse_value(text: str):
     return text
 
 
-def _parse_settings(items):
-    settings = {}
+def _key_values(items, option: str) -> dict:
+    """``KEY=VALUE`` items of a repeatable ``option`` as a dict of stripped strings."""
+    pairs = {}
     for item in items or []:
         if "=" not in item:
-            raise SystemExit(f"pmic-compare: --set expects NAME=VALUE, got {item!r}")
-        name, value = item.split("=", 1)
-        settings[name.strip()] = _parse_value(value.strip())
-    return settings
+            raise SystemExit(f"{option} expects KEY=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        pairs[key.strip()] = value.strip()
+    return pairs
+
+
+def _parse_settings(items):
+    """``--set NAME=VALUE``: pmic parameters, numbers and booleans parsed."""
+    return {name: _parse_value(value) for name, value in _key_values(items, "--set").items()}
 
 
 def _parse_defines(items) -> dict:
     """``-D key=value`` pairs (Mitsuba's command line), for a scene file's ``$key``."""
-    defines = {}
-    for item in items or []:
-        if "=" not in item:
-            raise SystemExit(f"-D expects KEY=VALUE, got {item!r}")
-        key, value = item.split("=", 1)
-        defines[key.strip()] = value.strip()
-    return defines
+    return _key_values(items, "-D")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -181,7 +181,7 @@ def write_strip(path, results, reference=None, exposure: float = 1.0) -> None:
         panels.append(("reference (path)\n\n", reference))
     height, width = panels[0][1].shape[:2]
     scale = 3.0 / max(height, width) * max(1.0, min(height, width) / 160)
-    figure, axes = plt.subplots(1, len(panels), figsize=(len(panels) * width * scale / 1.0 + 0.2,
+    figure, axes = plt.subplots(1, len(panels), figsize=(len(panels) * width * scale + 0.2,
                                                          height * scale + 0.9), squeeze=False)
     for axis, (title, image) in zip(axes[0], panels):
         axis.imshow(metrics.tonemap_srgb(image, exposure), interpolation="nearest")

@@ -62,8 +62,10 @@ def noise_of_passes(passes) -> float:
 def _check_budget(spp, seconds) -> None:
     if spp is None and seconds is None:
         raise ValueError("reference: give 'spp' (samples per pixel) or 'seconds' (a time budget)")
-    if spp is not None and (isinstance(spp, bool) or int(spp) != spp or spp < 1):
-        raise ValueError(f"reference: 'spp' must be a positive integer, got {spp!r}")
+    if spp is not None:
+        from .scenes import check_positive_int
+
+        check_positive_int(spp, "reference: 'spp'")
     if seconds is not None and not (isinstance(seconds, (int, float)) and seconds > 0):
         raise ValueError(f"reference: 'seconds' must be a positive number, got {seconds!r}")
 

@@ -211,6 +211,24 @@ def read_exr(path: str | os.PathLike) -> np.ndarray:
         return np.stack([channels[c].pixels for c in "RGB"], axis=-1).astype(np.float32)
 
 
+def check_positive_int(value, what: str) -> int:
+    """``value`` as an int; ValueError "``what`` must be a positive integer" otherwise
+    (a bool, a fraction, zero or less)."""
+    if isinstance(value, bool) or int(value) != value or value < 1:
+        raise ValueError(f"{what} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def _image_to_write(image, path) -> tuple[np.ndarray, Path]:
+    """(``image`` as float32, checked to be H x W x 3; ``path``, its folder made)."""
+    data = np.asarray(image, dtype=np.float32)
+    if data.ndim != 3 or data.shape[2] != 3:
+        raise ValueError(f"image must have shape (H, W, 3); got {data.shape}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return data, path
+
+
 def write_exr(
     path: str | os.PathLike, image, metadata: Mapping[str, Any] | None = None, half: bool = False
 ) -> None:
@@ -225,13 +243,9 @@ def write_exr(
     """
     import OpenEXR
 
-    data = np.asarray(image, dtype=np.float32)
-    if data.ndim != 3 or data.shape[2] != 3:
-        raise ValueError(f"image must have shape (H, W, 3); got {data.shape}")
+    data, path = _image_to_write(image, path)
     if half:
         data = data.astype(np.float16)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     channels = {c: np.ascontiguousarray(data[:, :, i]) for i, c in enumerate("RGB")}
     header: dict[str, Any] = {
         "compression": OpenEXR.ZIP_COMPRESSION,
@@ -248,11 +262,7 @@ def write_png(path: str | os.PathLike, image, exposure: float = 1.0) -> None:
     ``exposure``, clipped at 1: :func:`pmic_integrator.metrics.tonemap_srgb`)."""
     from .metrics import tonemap_srgb
 
-    data = np.asarray(image, dtype=np.float32)
-    if data.ndim != 3 or data.shape[2] != 3:
-        raise ValueError(f"image must have shape (H, W, 3); got {data.shape}")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    data, path = _image_to_write(image, path)
     encoded = (tonemap_srgb(data, exposure) * 255 + 0.5).clip(0, 255).astype(np.uint8)
     _mitsuba().Bitmap(np.ascontiguousarray(encoded)).write(str(path))
 

@@ -98,8 +98,9 @@ def frames_along_path(scene_file, keys, count: int, sensor: int = 0, seed: int =
     ``seed + i``."""
     if isinstance(keys, (str, os.PathLike)):
         keys = json.loads(Path(keys).read_text())
-    if isinstance(count, bool) or int(count) != count or count < 1:
-        raise ValueError(f"camera path: 'count' (frames) must be a positive integer, got {count!r}")
+    from .scenes import check_positive_int
+
+    check_positive_int(count, "camera path: 'count' (frames)")
     keys = [_check_key(i, k) for i, k in enumerate(keys)]
     if not keys:
         raise ValueError("camera path: needs at least one key")
@@ -294,8 +295,9 @@ def render_views(scene_file, sensors=None, spp: int = 16, seed: int = 0, integra
 
 
 def _check_spp(spp) -> None:
-    if isinstance(spp, bool) or int(spp) != spp or spp < 1:
-        raise ValueError(f"render_frames: 'spp' must be a positive integer, got {spp!r}")
+    from .scenes import check_positive_int
+
+    check_positive_int(spp, "render_frames: 'spp'")
 
 
 def _client(scheduler, n_workers: int, threads_per_worker: int, processes: bool):
