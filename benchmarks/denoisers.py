@@ -15,23 +15,21 @@ Writes benchmarks/results/denoisers.md.
 from __future__ import annotations
 
 import argparse
-import platform
-import time
 from pathlib import Path
 
 import pmic_integrator  # noqa: F401  (LLVM set-up before Mitsuba)
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import common
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--out", type=Path, default=common.RESULTS)
     args = parser.parse_args(argv)
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(common.VARIANT)
     import mitsuba_oidn
     import pyoidn
     from pmic_integrator import compare, metrics, scenes
@@ -57,14 +55,11 @@ def main(argv=None) -> int:
     times = {name: [] for name in runs}
     for _ in range(args.rounds):
         for name, run in runs.items():
-            start = time.perf_counter()
-            outputs[name] = run()
-            dr.sync_thread()
-            times[name].append(time.perf_counter() - start)
+            outputs[name], seconds = common.timed(run)
+            times[name].append(seconds)
     base = outputs["pyoidn"]
     lines = ["# OIDN on the CPU: pyoidn against mitsuba-oidn", "",
-             f"`python benchmarks/denoisers.py --rounds {args.rounds}` ({platform.machine()}, "
-             f"{dr.thread_count()} threads): one 512² Cornell box (path, 4 spp) with albedo and normal "
+             f"`{common.command(__file__, argv)}` ({common.machine_summary()}): one 512² Cornell box (path, 4 spp) with albedo and normal "
              f"guides; RT filter, HDR, high quality; {args.rounds} alternating rounds after a warm-up.", "",
              "| binding | fastest [ms] | median [ms] | relMSE vs pyoidn's output | relMSE vs reference |",
              "|---|---|---|---|---|"]
@@ -73,8 +68,8 @@ def main(argv=None) -> int:
                      f"{metrics.rel_mse(outputs[name], base):.2e} | {metrics.rel_mse(outputs[name], reference):.2e} |")
     lines.append(f"| (the noisy input) | | | | {metrics.rel_mse(color, reference):.2e} |")
     text = "\n".join(lines) + "\n"
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "denoisers.md").write_text(text)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "denoisers.md").write_text(text)
     print(text)
     return 0
 

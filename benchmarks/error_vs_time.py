@@ -35,16 +35,13 @@ import argparse
 import csv
 import json
 import math
-import platform
-import sys
-import time
 from pathlib import Path
 
 import pmic_integrator  # noqa: F401  (LLVM set-up before Mitsuba)
 import mitsuba as mi
-import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import common
+
 TARGETS = (2e-3, 1e-3, 5e-4)
 
 PATH_SPP = {"full": [4, 16, 64, 256], "quick": [4, 16]}
@@ -257,14 +254,6 @@ def plot(name, rows, path_png, resolution):
     plt.close(fig)
 
 
-def machine():
-    import drjit as dr
-
-    return {"python": sys.version.split()[0], "mitsuba": mi.__version__, "drjit": dr.__version__,
-            "variant": mi.variant(), "cpu": platform.processor() or platform.machine(),
-            "threads": dr.thread_count(), "date": time.strftime("%Y-%m-%d")}
-
-
 def write_outputs(results, out: Path, stem: str):
     """Speed-ups, Markdown, CSV and plots from ``results`` (as saved in the JSON)."""
     from types import SimpleNamespace
@@ -312,8 +301,7 @@ def write_outputs(results, out: Path, stem: str):
             md += [f"![{name} crops]({stem}_{name}_crops.png)", ""]
         print(name, "raw", json.dumps(ups), "denoised", json.dumps(ups_dn), "first-hit",
               json.dumps(ups_fh), "first-hit denoised", json.dumps(ups_fh_dn), flush=True)
-    (out / f"{stem}.json").write_text(json.dumps(results, indent=2, default=str))
-    (out / f"{stem}.md").write_text("\n".join(md) + "\n")
+    common.write_results(out, stem, results, md)
     with open(out / f"{stem}.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["scene", "integrator", "settings", "spp", "seconds", "compile_s", "rel_mse", "flip",
@@ -333,8 +321,8 @@ def main(argv=None):
     parser.add_argument("--scenes", nargs="+", default=["cornell_box", "indirect_room"])
     parser.add_argument("--resolution", type=int, default=512)
     parser.add_argument("--quick", action="store_true", help="tiny ladders at 128² (smoke test)")
-    parser.add_argument("--out", type=Path, default=RESULTS)
-    parser.add_argument("--variant", default="llvm_ad_rgb")
+    parser.add_argument("--out", type=Path, default=common.RESULTS)
+    parser.add_argument("--variant", default=common.VARIANT)
     parser.add_argument("--repeat", type=int, default=1,
                         help="rounds over all runs, each run keeping its fastest time (a noisy machine)")
     parser.add_argument("--replot", type=Path, default=None,
@@ -351,8 +339,8 @@ def main(argv=None):
 
     args.out.mkdir(parents=True, exist_ok=True)
     stem = f"error_vs_time_{resolution}" + ("_quick" if args.quick else "")
-    results = {"machine": machine(), "resolution": resolution, "mode": mode,
-               "command": "python benchmarks/error_vs_time.py " + " ".join(argv or sys.argv[1:]),
+    results = {"machine": common.machine(), "resolution": resolution, "mode": mode,
+               "command": common.command(__file__, argv),
                "scenes": {}}
     for name in args.scenes:
         print(f"{name}:", flush=True)

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -37,7 +36,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from pmic_integrator.metrics import rel_mse
+
+import common
+
 SCENE = "indirect_room"
 #: pmic's settings for the frames: the defaults but for the spp.
 PMIC_SPP = 4
@@ -54,11 +56,12 @@ REFERENCE_SPP = 4096
 
 
 def flicker(frames, references) -> float:
-    """mean_t mean(((F_t - R_t) - (F_t-1 - R_t-1))^2 / (R_t^2 + 0.01)) (see the module)."""
+    """mean_t mean(((F_t - R_t) - (F_t-1 - R_t-1))^2 / (R_t^2 + 0.01)) (see the module):
+    the relMSE against R_t of R_t plus the change of the frames' error."""
     values = []
     for t in range(1, len(frames)):
         change = (frames[t] - references[t]) - (frames[t - 1] - references[t - 1])
-        values.append(float(np.mean(change ** 2 / (references[t] ** 2 + 1e-2))))
+        values.append(rel_mse(references[t] + change, references[t]))
     return float(np.mean(values))
 
 
@@ -104,7 +107,8 @@ def path_references(scene, frames, spp):
         shifted = [replace(frame, seed=frame.seed + 10_000 + offset) for frame in frames]
         halves.append(render_frames_local(scene, path, shifted, spp // 2, False)[0])
     references = [(a + b) / 2 for a, b in zip(*halves)]
-    noise = [float(np.mean((a - b) ** 2 / 4 / (r ** 2 + 1e-2))) for a, b, r in zip(*halves, references)]
+    # mean((A - B)^2 / 4 / (R^2 + 0.01)): the relMSE against R of R + (A - B) / 2.
+    noise = [rel_mse(r + (a - b) / 2, r) for a, b, r in zip(*halves, references)]
     return references, 2 * float(np.mean(noise))
 
 
@@ -165,11 +169,9 @@ def _at_time(ladder, seconds: float) -> float:
 
 
 def _sequence_row(images, seconds, spp, references, reference_flicker) -> dict:
-    from pmic_integrator import metrics
-
     return {"spp": spp, "s_per_frame": float(np.median(seconds)),
             "flicker": flicker(images, references) - reference_flicker,
-            "relmse": float(np.mean([metrics.rel_mse(a, b) for a, b in zip(images, references)]))}
+            "relmse": float(np.mean([rel_mse(a, b) for a, b in zip(images, references)]))}
 
 
 def measure_fps(resolution: int, count: int, log):
@@ -180,13 +182,9 @@ def measure_fps(resolution: int, count: int, log):
     frames = frames_along_path("(in memory)", camera_keys(scene, True, count), count)
     render_frames_local(scene, mi.load_dict({"type": "pmic"}), frames[:1], 1, False)  # warm-up
     one = mi.load_dict({"type": "pmic"})
-    start = time.perf_counter()
-    render_frames_local(scene, one, frames, PMIC_SPP, False)
-    one_cache = time.perf_counter() - start
-    start = time.perf_counter()
-    for frame in frames:
-        render_frames_local(scene, mi.load_dict({"type": "pmic"}), [frame], PMIC_SPP, False)
-    rebuilt = time.perf_counter() - start
+    _, one_cache = common.timed(lambda: render_frames_local(scene, one, frames, PMIC_SPP, False))
+    _, rebuilt = common.timed(lambda: [render_frames_local(scene, mi.load_dict({"type": "pmic"}), [frame],
+                                                           PMIC_SPP, False) for frame in frames])
     row = {"frames": count, "spp": PMIC_SPP, "one_cache_fps": count / one_cache,
            "rebuild_fps": count / rebuilt, "ratio": rebuilt / one_cache,
            "cache_builds_one_cache": one.stats["cache_builds"]}
@@ -229,15 +227,8 @@ def measure_fingerprint(log, rounds: int = 5):
     from pmic_integrator.fingerprint import scene_fingerprint
 
     scene, triangles = million_triangle_scene()
-    timings = {}
-    for label, function in (("device_hash", scene_fingerprint), ("host_copy", host_copy_digest)):
-        function(scene)  # warm-up (kernels compiled)
-        best = float("inf")
-        for _ in range(rounds):
-            start = time.perf_counter()
-            function(scene)
-            best = min(best, time.perf_counter() - start)
-        timings[label] = best
+    timings = {label: common.fastest(lambda: function(scene), rounds)
+               for label, function in (("device_hash", scene_fingerprint), ("host_copy", host_copy_digest))}
     row = {"triangles": triangles, "device_hash_s": timings["device_hash"],
            "host_copy_s": timings["host_copy"], "ratio": timings["host_copy"] / timings["device_hash"]}
     log(f"fingerprint: {row}")
@@ -306,8 +297,6 @@ def write_markdown(results, path: Path):
 
 
 def main(argv=None):
-    import platform
-
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--fps", action="store_true")
     parser.add_argument("--flicker", action="store_true")
@@ -315,15 +304,14 @@ def main(argv=None):
     parser.add_argument("--freeze", action="store_true")
     parser.add_argument("--frames", type=int, default=6)
     parser.add_argument("--resolution", type=int, default=128)
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=common.RESULTS)
     args = parser.parse_args(argv)
     every = not (args.fps or args.flicker or args.fingerprint or args.freeze)
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(common.VARIANT)
     # Measurements not asked for this time keep their last figures.
     kept = args.out / "flythrough.json"
     results = json.loads(kept.read_text()) if kept.is_file() else {}
-    results.update({"machine": f"{platform.processor() or platform.machine()}, {dr.thread_count()} threads",
-                    "resolution": args.resolution})
+    results.update({"machine": common.machine_summary(), "resolution": args.resolution})
     log = print
     if every or args.fingerprint:
         results["fingerprint"] = measure_fingerprint(log)

@@ -15,13 +15,15 @@ the same sums up to rounding whatever the version (``--save`` writes them for a 
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
 import pmic_integrator  # noqa: F401  (before mitsuba: the LLVM it needs)
 import drjit as dr
 import mitsuba as mi
+
+import common
+from common import fastest
 
 #: The cache of the error-versus-time benchmark's cheapest pmic runs.
 SETTINGS = {"global_photons": 50_000, "max_error": 1.0, "gather_rays": 64, "direct_samples": 1}
@@ -44,16 +46,6 @@ def gather_hits(scene, count: int, seed: int):
     return hit.p, normal, active
 
 
-def fastest(run, repeats: int) -> float:
-    run()  # compiles
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return min(times)
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scene", default="cornell_box")
@@ -61,7 +53,7 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--save", default=None, help="write the interpolated irradiance (.npy)")
     args = parser.parse_args(argv)
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(common.VARIANT)
     from pmic_integrator import cache, scenes
 
     scene = scenes.load_scene(args.scene, resolution=128, spp=1)

@@ -14,22 +14,14 @@ import argparse
 import json
 import resource
 import statistics
-import sys
-import time
 from pathlib import Path
 
 import pmic_integrator  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def timed(fn):
-    start = time.perf_counter()
-    out = fn()
-    dr.sync_thread()
-    return out, time.perf_counter() - start
+import common
+from common import timed
 
 
 def main(argv=None):
@@ -37,11 +29,11 @@ def main(argv=None):
     parser.add_argument("--photons", type=int, nargs="+", default=[100_000, 1_000_000])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--memory", action="store_true", help="also render with 10M global photons")
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=common.RESULTS)
     args = parser.parse_args(argv)
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(common.VARIANT)
     from pmic_integrator import scenes
-    from pmic_integrator.integrator import SceneInfo
+    from pmic_integrator.pipeline import SceneInfo
     from pmic_integrator.irradiance import lookup_radius, precompute_irradiance, sort_into_grid
     from pmic_integrator.photons import GLOBAL, trace_photons
 
@@ -81,10 +73,7 @@ def main(argv=None):
                   "finite": bool(dr.all(dr.isfinite(image.array), axis=None))}
         print(json.dumps(memory), flush=True)
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    command = "python benchmarks/precompute.py " + " ".join(argv or sys.argv[1:])
-    (args.out / "precompute.json").write_text(json.dumps({"command": command, "rows": rows,
-                                                          "memory": memory}, indent=2))
+    command = common.command(__file__, argv)
     md = ["# Photon stage timings (Cornell box, 2 cores)", "", f"`{command}`", "",
           "| global photons | tracing [s] | stored photons/s | grid build [s] | precomputed irradiance [s] |",
           "|---|---|---|---|---|"]
@@ -96,7 +85,7 @@ def main(argv=None):
         md += ["", f"10M global photons: rendered in {memory['seconds']:.1f} s, "
                    f"{memory['bytes_per_photon']:.0f} bytes per photon ({memory['photon_bytes'] / 2**30:.2f} GiB), "
                    f"peak RSS {memory['peak_rss_gib']:.1f} GiB, finite image: {memory['finite']}."]
-    (args.out / "precompute.md").write_text("\n".join(md) + "\n")
+    common.write_results(args.out, "precompute", {"command": command, "rows": rows, "memory": memory}, md)
     print("\n".join(md))
 
 

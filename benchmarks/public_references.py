@@ -16,29 +16,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 from pathlib import Path
 
 import pmic_integrator  # noqa: F401  (LLVM set-up before Mitsuba)
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "scenes"
-OUT = Path(__file__).resolve().parent / "references" / "public"
+import common
+
 #: The public scenes that came without a reference.
 WITHOUT_REFERENCE = ("dining_room", "white_room", "sponza", "torus", "cornell_glossy")
-
-
-def load(name: str):
-    """A public scene. Mitsuba 3.9 can deadlock loading an envmap with a one-thread
-    Dr.Jit pool: load with at least two threads."""
-    threads = dr.thread_count()
-    dr.set_thread_count(max(2, threads))
-    try:
-        return mi.load_file(str(SHARED / "scenes" / name / "scene.xml"))
-    finally:
-        dr.set_thread_count(threads)
 
 
 def main(argv=None) -> int:
@@ -48,20 +35,20 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="+", default=list(WITHOUT_REFERENCE))
     parser.add_argument("--seconds", type=float, default=300.0, help="time budget per scene")
-    parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--out", type=Path, default=common.PUBLIC_REFERENCES)
     parser.add_argument("--npy", type=Path, default=None, help="also write compare_with_path.py's layout here")
     args = parser.parse_args(argv)
-    if not SHARED.is_dir():
-        parser.error(f"no public scenes at {SHARED}")
-    mi.set_variant("llvm_ad_rgb")
+    if not common.SHARED.is_dir():
+        parser.error(f"no public scenes at {common.SHARED}")
+    mi.set_variant(common.VARIANT)
     for name in args.scenes:
-        scene = load(name)
+        scene = common.load_public(name)
         ref = reference.render_reference(scene, seconds=args.seconds, progress=True)
         info = {"scene": name, "integrator": "path", "max_depth": -1, "spp": ref.spp,
                 "seconds": round(ref.seconds, 1), "noise_relmse": ref.noise,
                 "shape": list(ref.image.shape), "mean_luminance": mean_luminance(ref.image),
-                "finite": finite(ref.image), "machine": f"{platform.machine()}, {dr.thread_count()} threads",
-                "command": f"python benchmarks/public_references.py --scenes {name} --seconds {args.seconds:g}"}
+                "finite": finite(ref.image), "machine": common.machine_summary(),
+                "command": common.command(__file__, ["--scenes", name, "--seconds", f"{args.seconds:g}"])}
         scenes.write_exr(args.out / f"{name}.exr", ref.image, {k: info[k] for k in ("spp", "noise_relmse")},
                          half=True)
         (args.out / f"{name}.json").write_text(json.dumps(info, indent=1))

@@ -14,6 +14,13 @@ reaches the error sooner.
 
     python benchmarks/public_scenes.py                  # every scene with a reference
     python benchmarks/public_scenes.py --scenes torus sponza --spp 32
+    python benchmarks/public_scenes.py --scenes --kinds door_ajar sunlit_classroom
+
+``--kinds`` adds scenes built in code of the public interiors' kinds
+(:data:`pmic_integrator.kinds.INTERIOR_KINDS`: a room lit through a door ajar, a sky
+through windows, sun and sky through windows over a large ground, a small light high
+over a tall shaft), their references rendered by ``path`` for ``--reference-seconds``
+and kept (:func:`pmic_integrator.reference.cached_reference`).
 
 Writes benchmarks/results/public_scenes.json and .md and a labelled strip per scene
 (benchmarks/results/public_<scene>.png).
@@ -23,17 +30,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
-from pathlib import Path
 
 import pmic_integrator  # noqa: F401  (LLVM set-up before Mitsuba)
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from public_references import OUT as PROJECT_REFS, SHARED, load
+import common
+from common import PUBLIC_REFERENCES, RESULTS, SHARED
 
-RESULTS = Path(__file__).resolve().parent / "results"
 ORDER = ("veach_bidir", "matpreview", "dining_room", "white_room", "sponza", "torus", "cornell_glossy")
 
 
@@ -45,9 +49,9 @@ def reference_of(name: str):
     if shared.is_file():
         info = json.loads((SHARED / "refs" / f"{name}.json").read_text())
         return np.load(shared)[..., :3].astype(np.float32), info["ref_noise_relmse"], f"shared refs ({info['spp_total']} spp)"
-    own = PROJECT_REFS / f"{name}.exr"
+    own = PUBLIC_REFERENCES / f"{name}.exr"
     if own.is_file():
-        info = json.loads((PROJECT_REFS / f"{name}.json").read_text())
+        info = json.loads((PUBLIC_REFERENCES / f"{name}.json").read_text())
         return read_exr(own), info["noise_relmse"], f"project ({info['spp']} spp)"
     return None
 
@@ -71,14 +75,25 @@ def time_to_error(points, target):
     return math.exp(t1 + (goal - e1) / slope), True
 
 
-def measure(name: str, spp: int, log):
-    from pmic_integrator import compare, metrics
-
+def measure_public(name: str, spp: int, log):
     found = reference_of(name)
     if found is None:
         return None
+    return measure(name, common.load_public(name), found, spp, log)
+
+
+def measure_kind(name: str, spp: int, reference_seconds: float, log):
+    from pmic_integrator import kinds, reference
+
+    scene = mi.load_dict(kinds.INTERIOR_KINDS[name]())
+    ref = reference.cached_reference(scene, seconds=reference_seconds)
+    return measure(name, scene, (ref.image, ref.noise, f"kept ({ref.spp} spp)"), spp, log)
+
+
+def measure(name: str, scene, found, spp: int, log):
+    from pmic_integrator import compare, metrics
+
     ref, noise, origin = found
-    scene = load(name)
     results = compare.compare(scene, {}, spp, ref, denoised=True, log=log)
     pmic, path, pmic_dn, path_dn = results
     row = {"scene": name, "reference": origin, "reference_noise": noise}
@@ -102,10 +117,9 @@ def measure(name: str, spp: int, log):
     return row
 
 
-def write_markdown(rows, spp: int, path: Path):
+def markdown(rows, spp: int, command: str) -> list[str]:
     lines = ["# Public scenes: pmic against path at equal time", "",
-             f"`python benchmarks/public_scenes.py --spp {spp}` ({platform.machine()}, "
-             f"{dr.thread_count()} threads); pmic with its default settings at {spp} spp. relMSE is "
+             f"`{command}` ({common.machine_summary()}); pmic with its default settings at {spp} spp. relMSE is "
              "less the reference's own noise; speed-up = how much sooner pmic reaches its error "
              "than path (or path + OIDN) would (~: path + OIDN's curve extrapolated).", "",
              "| scene | reference (noise) | pmic luminance | pmic relMSE | path relMSE | speed-up vs path | "
@@ -121,21 +135,24 @@ def write_markdown(rows, spp: int, path: Path):
                      f"{p['seconds']:.1f} | {p['flip']:.3f} / {q['flip']:.3f} | "
                      f"{all(x['finite'] for x in (p, q, pd, qd))} |")
     lines += ["", "Images: `benchmarks/results/public_<scene>.png` (pmic, path, pmic+OIDN, path+OIDN, "
-              "reference; each labelled with its spp, time and relMSE).", ""]
-    path.write_text("\n".join(lines))
+              "reference; each labelled with its spp, time and relMSE)."]
+    return lines
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="+", default=list(ORDER))
     parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--kinds", nargs="*", default=[],
+                        help="scenes built in code (pmic_integrator.kinds.INTERIOR_KINDS)")
+    parser.add_argument("--reference-seconds", type=float, default=120.0)
     args = parser.parse_args(argv)
-    mi.set_variant("llvm_ad_rgb")
-    rows = [row for name in args.scenes if (row := measure(name, args.spp, print)) is not None]
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "public_scenes.json").write_text(json.dumps(rows, indent=1, default=str))
-    write_markdown(rows, args.spp, RESULTS / "public_scenes.md")
-    print(f"written {RESULTS / 'public_scenes.md'}")
+    mi.set_variant(common.VARIANT)
+    rows = [row for name in args.scenes if (row := measure_public(name, args.spp, print)) is not None]
+    rows += [measure_kind(name, args.spp, args.reference_seconds, print) for name in args.kinds]
+    lines = markdown(rows, args.spp, common.command(__file__, argv))
+    md = common.write_results(RESULTS, "public_scenes", rows, lines)
+    print(f"written {md}")
     return 0
 
 

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -32,10 +30,12 @@ import numpy as np
 import pmic_integrator  # noqa: F401  (before mitsuba: the LLVM it needs)
 import mitsuba as mi
 
-from pmic_integrator.metrics import mean_luminance, rel_mse
+from pmic_integrator.compare import timed_render
+from pmic_integrator.metrics import finite, mean_luminance, rel_mse
 
-RESULTS = Path(__file__).resolve().parent / "results"
-mi.set_variant("llvm_ad_rgb")
+import common
+
+mi.set_variant(common.VARIANT)
 T = mi.ScalarTransform4f
 W, H = 64, 48
 
@@ -219,7 +219,7 @@ def make_scene(seed):
 
 
 def render(scene, integ, spp, seed=0):
-    return np.array(mi.render(scene, integrator=mi.load_dict(integ), spp=spp, seed=seed))[..., :3]
+    return timed_render(scene, mi.load_dict(integ), spp, seed)[0]
 
 
 def measure(seed: int, path_spp: int) -> dict:
@@ -230,11 +230,9 @@ def measure(seed: int, path_spp: int) -> dict:
     rb = render(scene, {'type': 'path', 'max_depth': -1}, path_spp // 2, 12)
     ref = 0.5 * (ra + rb)
     lum_ref = mean_luminance(ref)
-    start = time.perf_counter()
-    img = render(scene, {'type': 'pmic'}, 64, 1)
-    row["pmic_s"] = time.perf_counter() - start
+    img, row["pmic_s"] = timed_render(scene, mi.load_dict({'type': 'pmic'}), 64, 1)
     first_hit = render(scene, {'type': 'pmic', 'estimator': 'first_hit'}, 64, 2)
-    row["finite"] = bool(np.isfinite(img).all() and np.isfinite(first_hit).all())
+    row["finite"] = finite(img) and finite(first_hit)
     if lum_ref <= 0:
         row.update(path_black=True, pmic_mean=mean_luminance(img), first_hit_mean=mean_luminance(first_hit),
                    flag=mean_luminance(img) > 0 or mean_luminance(first_hit) > 0 or not row["finite"])
@@ -252,7 +250,7 @@ def main(argv=None):
     parser.add_argument("--first", type=int, default=0)
     parser.add_argument("--count", type=int, default=40)
     parser.add_argument("--path-spp", type=int, default=2048)
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=common.RESULTS)
     args = parser.parse_args(argv)
     if args.count < 1 or args.path_spp < 2:
         parser.error("--count must be >= 1 and --path-spp >= 2")
@@ -264,9 +262,7 @@ def main(argv=None):
             row = {"seed": seed, "scene": make_scene(seed)[1], "error": f"{type(error).__name__}: {error}", "flag": True}
         rows.append(row)
         print(json.dumps(row), flush=True)
-    command = "python benchmarks/random_rooms.py " + " ".join(sys.argv[1:] if argv is None else argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "random_rooms.json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
+    command = common.command(__file__, argv)
     lines = [f"# Random rooms against path (64×48; pmic 64 spp, path {args.path_spp} spp)", "",
              f"`{command}`", "", "| seed | pmic lum | first_hit lum | path halves | pmic relMSE | flag | room |",
              "|---|---|---|---|---|---|---|"]
@@ -279,7 +275,7 @@ def main(argv=None):
         else:
             lines.append(f"| {r['seed']} | {r['pmic_lum']:.4f} | {r['first_hit_lum']:.4f} | {r['halves']:.4f} | "
                          f"{r['pmic_relmse']:.2e} | {'yes' if r['flag'] else ''} | {r['scene']} |")
-    (args.out / "random_rooms.md").write_text("\n".join(lines) + "\n")
+    common.write_results(args.out, "random_rooms", {"command": command, "rows": rows}, lines)
 
 
 if __name__ == "__main__":

@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import pmic_integrator  # noqa: F401
 import mitsuba as mi
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import common
+
 METHODS = ("pmic", "irradiance_cache", "photon_map")
 
 
@@ -28,13 +28,13 @@ def main(argv=None):
     parser.add_argument("--scenes", nargs="+", default=None)
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--spp", type=int, default=64)
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=common.RESULTS)
     args = parser.parse_args(argv)
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(common.VARIANT)
     from pmic_integrator import compare, scenes
 
     names = args.scenes or list(scenes.SCENES)
-    command = "python benchmarks/scene_errors.py " + " ".join(argv or sys.argv[1:])
+    command = common.command(__file__, argv)
     rows = []
     for name in names:
         reference = scenes.load_reference(name, args.resolution)
@@ -50,16 +50,13 @@ def main(argv=None):
         p = compare.path_at_equal_time(scene, pmic_seconds, reference)
         rows.append({"scene": name, **{k: v for k, v in p.row().items() if k != "stats"}, "records": 0})
         print(json.dumps(rows[-1]), flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = f"scene_errors_{args.resolution}"
-    (args.out / f"{stem}.json").write_text(json.dumps({"command": command, "rows": rows}, indent=2))
     md = [f"# Bundled scenes at {args.resolution}², defaults, {args.spp} spp (path: pmic's time)", "",
           f"`{command}`", "", "| scene | integrator | spp | time [s] | relMSE | luminance | records |",
           "|---|---|---|---|---|---|---|"]
     for r in rows:
         md.append(f"| {r['scene']} | {r['label']} | {r['spp']} | {r['seconds']:.2f} | {r['rel_mse']:.2e} | "
                   f"{r['luminance_ratio']:.4f} | {r['records']} |")
-    (args.out / f"{stem}.md").write_text("\n".join(md) + "\n")
+    common.write_results(args.out, f"scene_errors_{args.resolution}", {"command": command, "rows": rows}, md)
     print("\n".join(md))
 
 

@@ -20,14 +20,14 @@ relMSE against a ``path`` reference of ``--ref-spp`` samples (computed once, kep
 ``~/.cache/pmic-benchmarks``; its own noise is in both errors). Speed-up = how much
 sooner pmic reaches its error than ``path`` would, with path's relMSE falling as 1/t.
 Writes ``benchmarks/results/scene_kinds_<res>.{json,md}`` (with ``--rounds``:
-``scene_kinds_<res>_rounds``, see :func:`measure_rounds`).
+``scene_kinds_<res>_rounds``, see :func:`measure_rounds`). The luminance ratio is
+:func:`pmic_integrator.metrics.luminance_ratio` (Rec. 709 weights); the tables written
+up to commit 3439931 hold the ratio of the plain means of R, G and B.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -35,28 +35,30 @@ import numpy as np
 import pmic_integrator  # noqa: F401  (before mitsuba: the LLVM it needs)
 import mitsuba as mi
 
-ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "benchmarks" / "results"
+from pmic_integrator import kinds
+from pmic_integrator.compare import timed_render
+from pmic_integrator.metrics import luminance_ratio, rel_mse
+
+import common
+
 CACHE = Path.home() / ".cache" / "pmic-benchmarks"
 ROUGH_ALUMINIUM = {"type": "roughconductor", "material": "Al", "alpha": 0.25}
 
 
 def scene_dict(name: str, size):
-    """The test scenes of ``tests/scene_builders.py``, with Mitsuba's default pixel
-    filter (a Gaussian), as real scenes have, instead of the tests' box."""
-    sys.path.insert(0, str(ROOT / "tests"))
-    import scene_builders as sb
+    """Scenes of :mod:`pmic_integrator.kinds`, with Mitsuba's default pixel filter (a
+    Gaussian), as real scenes have, instead of the tests' box."""
     if name == "door_diffuse":
-        d = sb.two_rooms(door_width=0.25, size=size)
+        d = kinds.two_rooms(door_width=0.25, size=size)
     elif name == "door_rough_floor":
-        d = sb.two_rooms(door_width=0.25, size=size, floor_bsdf=ROUGH_ALUMINIUM)
+        d = kinds.two_rooms(door_width=0.25, size=size, floor_bsdf=ROUGH_ALUMINIUM)
     elif name == "door_principled":
         # Every surface Mitsuba's principled BSDF at Blender's default roughness (what
         # Blender exports): its lobes cannot be taken apart.
         def principled(rgb):
             return {"type": "principled", "base_color": {"type": "rgb", "value": list(rgb)},
                     "roughness": 0.5}
-        d = sb.two_rooms(door_width=0.25, size=size, wall_bsdf=principled((0.7, 0.7, 0.7)))
+        d = kinds.two_rooms(door_width=0.25, size=size, wall_bsdf=principled((0.7, 0.7, 0.7)))
         for key, rgb in (("back", (0.6, 0.6, 0.4)), ("left", (0.7, 0.2, 0.2)), ("right", (0.2, 0.6, 0.2))):
             d[key]["bsdf"] = principled(rgb)
     elif name == "door_rough_plastic":
@@ -65,16 +67,16 @@ def scene_dict(name: str, size):
         def rough_plastic(rgb, alpha=0.3):
             return {"type": "roughplastic", "diffuse_reflectance": {"type": "rgb", "value": list(rgb)},
                     "alpha": alpha}
-        d = sb.two_rooms(door_width=0.25, size=size, wall_bsdf=rough_plastic((0.7, 0.7, 0.7)),
+        d = kinds.two_rooms(door_width=0.25, size=size, wall_bsdf=rough_plastic((0.7, 0.7, 0.7)),
                          floor_bsdf=rough_plastic((0.6, 0.5, 0.4), alpha=0.15))
         for key, rgb in (("back", (0.6, 0.6, 0.4)), ("left", (0.7, 0.2, 0.2)), ("right", (0.2, 0.6, 0.2))):
             d[key]["bsdf"] = rough_plastic(rgb)
     elif name == "courtyard_sun":
-        d = sb.courtyard(size=size)
+        d = kinds.courtyard(size=size)
     elif name == "courtyard_overcast":
-        d = sb.courtyard(size=size, sun=False)
+        d = kinds.courtyard(size=size, sun=False)
     elif name == "room_lamps":
-        d = sb.two_rooms(door_width=0.25, size=size, camera_in_lit_room=True)
+        d = kinds.two_rooms(door_width=0.25, size=size, camera_in_lit_room=True)
         d.pop("light")
         d["bulb"] = {"type": "point", "position": [-1.5, 0.6, 0.3],
                      "intensity": {"type": "rgb", "value": [3.0, 3.0, 2.5]}}
@@ -82,12 +84,12 @@ def scene_dict(name: str, size):
                      "to_world": mi.ScalarTransform4f().look_at(origin=[-0.5, 0.95, -0.5],
                                                                 target=[-1.0, -1.0, 0.0], up=[0, 0, 1])}
     elif name == "glass_on_table":
-        d = sb.two_rooms(door_width=0.25, size=size, camera_in_lit_room=True)
-        d["table"] = sb._box_part((-1.0, -0.6, 0.0), (0.4, 0.02, 0.4), sb._diffuse((0.6, 0.5, 0.4)))
+        d = kinds.two_rooms(door_width=0.25, size=size, camera_in_lit_room=True)
+        d["table"] = kinds._box_part((-1.0, -0.6, 0.0), (0.4, 0.02, 0.4), kinds._diffuse((0.6, 0.5, 0.4)))
         d["glass"] = {"type": "sphere", "center": [-1.0, -0.45, 0.0], "radius": 0.13,
                       "bsdf": {"type": "dielectric"}}
     elif name == "window_pane":
-        d = sb.window_room(size=size)
+        d = kinds.window_room(size=size)
         d["pane"] = {"type": "rectangle", "bsdf": {"type": "thindielectric"},
                      "to_world": mi.ScalarTransform4f().translate([0, 1.4, 1.99]).scale([0.6, 0.4, 1])}
     else:
@@ -101,16 +103,6 @@ SCENES = ("door_diffuse", "door_rough_floor", "door_principled", "door_rough_pla
 REPEATS = 2
 
 
-def relmse(img, ref):
-    return float(np.mean((img - ref) ** 2 / (ref ** 2 + 1e-2)))
-
-
-def render(scene, integrator, spp, seed):
-    start = time.perf_counter()
-    image = np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed), dtype=np.float64)
-    return image, time.perf_counter() - start
-
-
 def reference(name, size, ref_spp, scene):
     """The scene's ``path`` reference of ``ref_spp`` samples, computed once and kept."""
     CACHE.mkdir(parents=True, exist_ok=True)
@@ -118,7 +110,7 @@ def reference(name, size, ref_spp, scene):
     if not ref_file.exists():
         np.save(ref_file, np.array(mi.render(scene, integrator=mi.load_dict({"type": "path"}),
                                              spp=ref_spp, seed=1_000_000), dtype=np.float32))
-    return np.load(ref_file).astype(np.float64)
+    return np.load(ref_file)[..., :3].astype(np.float64)
 
 
 def measure_rounds(name, size, spp, ref_spp, rounds, path_spp):
@@ -130,16 +122,16 @@ def measure_rounds(name, size, spp, ref_spp, rounds, path_spp):
     (path's relMSE falling as 1/t)."""
     scene = mi.load_dict(scene_dict(name, size))
     ref = reference(name, size, ref_spp, scene)
-    render(scene, mi.load_dict({"type": "pmic", "seed": 1000}), spp, 1000)  # warm-ups
+    timed_render(scene, mi.load_dict({"type": "pmic", "seed": 1000}), spp, 1000)  # warm-ups
     path = mi.load_dict({"type": "path"})
-    render(scene, path, 8, 1000)
+    timed_render(scene, path, 8, 1000)
     pmic_runs, path_runs = [], []
     for r in range(rounds):
         pmic = mi.load_dict({"type": "pmic", "seed": r})
-        img, t = render(scene, pmic, spp, r)
-        pmic_runs.append((t, relmse(img, ref), float(img.mean() / ref.mean()), pmic.stats))
-        pimg, t = render(scene, path, path_spp, 100 + r)
-        path_runs.append((t, relmse(pimg, ref)))
+        img, t = timed_render(scene, pmic, spp, r)
+        pmic_runs.append((t, rel_mse(img, ref), luminance_ratio(img, ref), pmic.stats))
+        pimg, t = timed_render(scene, path, path_spp, 100 + r)
+        path_runs.append((t, rel_mse(pimg, ref)))
     t_pmic = float(np.median([x[0] for x in pmic_runs]))
     t_path = float(np.median([x[0] for x in path_runs]))
     e_pmic = float(np.mean([x[1] for x in pmic_runs]))
@@ -160,23 +152,23 @@ def measure_rounds(name, size, spp, ref_spp, rounds, path_spp):
 def measure(name, size, spp, ref_spp):
     scene = mi.load_dict(scene_dict(name, size))
     ref = reference(name, size, ref_spp, scene)
-    render(scene, mi.load_dict({"type": "pmic", "seed": 1}), spp, 1)  # warm-up (compiles)
+    timed_render(scene, mi.load_dict({"type": "pmic", "seed": 1}), spp, 1)  # warm-up (compiles)
     # The fastest of REPEATS runs of each (a fresh pmic each time: every stage again;
     # the same seeds, so the same images): one run's time moved by ±30 %.
     runs = []
     for _ in range(REPEATS):
         pmic = mi.load_dict({"type": "pmic"})
-        img, t = render(scene, pmic, spp, 0)
+        img, t = timed_render(scene, pmic, spp, 0)
         runs.append((t, img, pmic.stats))
     t_pmic, img, stats = min(runs, key=lambda r: r[0])
     path = mi.load_dict({"type": "path"})
-    _, t_rate = render(scene, path, 8, 1)  # warm-up, then the rate
-    _, t_rate = render(scene, path, 32, 2)
+    _, t_rate = timed_render(scene, path, 8, 1)  # warm-up, then the rate
+    _, t_rate = timed_render(scene, path, 32, 2)
     path_spp = max(1, round(32 * t_pmic / t_rate))
-    pimg, t_path = min((render(scene, path, path_spp, 3) for _ in range(REPEATS)), key=lambda r: r[1])
-    e_pmic, e_path = relmse(img, ref), relmse(pimg, ref)
+    pimg, t_path = min((timed_render(scene, path, path_spp, 3) for _ in range(REPEATS)), key=lambda r: r[1])
+    e_pmic, e_path = rel_mse(img, ref), rel_mse(pimg, ref)
     return {"scene": name, "resolution": list(size), "pmic_spp": spp, "pmic_s": t_pmic,
-            "pmic_relmse": e_pmic, "pmic_luminance_ratio": float(img.mean() / ref.mean()),
+            "pmic_relmse": e_pmic, "pmic_luminance_ratio": luminance_ratio(img, ref),
             "pmic_stages": {k: stats[k] for k in ("time_photons", "time_precompute", "time_cache",
                                                    "time_render")},
             "photons_caustic": stats["photons_caustic"], "records": stats["records"],
@@ -191,7 +183,7 @@ def main(argv=None):
     parser.add_argument("--resolution", type=int, default=320, help="width; height is 3/4 of it")
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--ref-spp", type=int, default=2048)
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=common.RESULTS)
     parser.add_argument("--rounds", type=int, default=0,
                         help="instead of one equal-time run: this many alternating rounds of "
                              "pmic and path (path at --path-spp), other seeds each round")
@@ -199,7 +191,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.rounds < 0 or args.path_spp < 1 or args.spp < 1:
         parser.error("--rounds must be >= 0, --spp and --path-spp >= 1")
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(common.VARIANT)
     size = (args.resolution, args.resolution * 3 // 4)
     rows = []
     for name in args.scenes:
@@ -209,13 +201,13 @@ def main(argv=None):
         print(f"{name:20s} pmic {row['pmic_s']:.2f} s relMSE {row['pmic_relmse']:.2e} "
               f"lum {row['pmic_luminance_ratio']:.4f} | path {row['path_spp']} spp {row['path_s']:.2f} s "
               f"relMSE {row['path_relmse']:.2e} | speed-up {row['speedup']:.2f}", flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / (f"scene_kinds_{size[0]}" + ("_rounds" if args.rounds else ""))
-    command = " ".join(["python benchmarks/scene_kinds.py", *(sys.argv[1:] if argv is None else argv)])
-    if set(args.scenes) != set(SCENES) and stem.with_suffix(".json").exists():
+    stem = f"scene_kinds_{size[0]}" + ("_rounds" if args.rounds else "")
+    command = common.command(__file__, argv)
+    earlier = args.out / f"{stem}.json"
+    if set(args.scenes) != set(SCENES) and earlier.exists():
         # A run over some of the scenes replaces their rows and keeps the others'
         # (each row says which command measured it).
-        kept = json.loads(stem.with_suffix(".json").read_text())
+        kept = json.loads(earlier.read_text())
         for row in kept["rows"]:
             row.setdefault("command", kept.get("command", ""))
         for row in rows:
@@ -223,7 +215,6 @@ def main(argv=None):
         done = {r["scene"] for r in rows}
         rows = [r for r in kept["rows"] if r["scene"] not in done] + rows
         rows.sort(key=lambda r: SCENES.index(r["scene"]) if r["scene"] in SCENES else len(SCENES))
-    stem.with_suffix(".json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
     how = (f"{args.rounds} alternating rounds, pmic {args.spp} spp and path {args.path_spp} spp; median "
            f"time, mean relMSE" if args.rounds else f"pmic {args.spp} spp, path at equal time")
     lines = [f"# pmic against path, scenes of the public checks' kinds, {size[0]}×{size[1]}",
@@ -240,8 +231,8 @@ def main(argv=None):
     if others:
         lines += ["", "Rows measured by an earlier run (kept by a run over other scenes):", ""]
         lines += [f"* {r['scene']}: `{r['command']}`" for r in others]
-    stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {stem}.json/.md")
+    md = common.write_results(args.out, stem, {"command": command, "rows": rows}, lines)
+    print(f"wrote {md.with_suffix('')}.json/.md")
 
 
 if __name__ == "__main__":

@@ -13,13 +13,13 @@ their mean, standard deviation and range, and the mean relMSE.
     python benchmarks/seed_spread.py                          # door rooms, 16 seeds
     python benchmarks/seed_spread.py --scenes courtyard_sun --seeds 8
 
-Writes ``benchmarks/results/seed_spread_<res>.{json,md}``.
+Writes ``benchmarks/results/seed_spread_<res>.{json,md}``. The luminance ratio is
+:func:`pmic_integrator.metrics.luminance_ratio` (Rec. 709 weights); the table written
+up to commit 3439931 holds the ratio of the plain means of R, G and B.
 """
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -27,20 +27,23 @@ import numpy as np
 import pmic_integrator  # noqa: F401  (before mitsuba: the LLVM it needs)
 import mitsuba as mi
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import scene_kinds as kinds  # noqa: E402
+from pmic_integrator.compare import timed_render
+from pmic_integrator.metrics import luminance_ratio, rel_mse
+
+import common
+import scene_kinds
 
 DEFAULT_SCENES = ("door_diffuse", "door_principled")
 
 
 def spread(name: str, size, spp: int, seeds: int, ref_spp: int) -> dict:
-    scene = mi.load_dict(kinds.scene_dict(name, size))
-    reference = kinds.reference(name, size, ref_spp, scene)
+    scene = mi.load_dict(scene_kinds.scene_dict(name, size))
+    reference = scene_kinds.reference(name, size, ref_spp, scene)
     ratios, errors = [], []
     for seed in range(seeds):
-        image, _ = kinds.render(scene, mi.load_dict({"type": "pmic", "seed": seed}), spp, 0)
-        ratios.append(float(image[..., :3].mean() / reference[..., :3].mean()))
-        errors.append(kinds.relmse(image[..., :3], reference[..., :3]))
+        image, _ = timed_render(scene, mi.load_dict({"type": "pmic", "seed": seed}), spp, 0)
+        ratios.append(luminance_ratio(image, reference))
+        errors.append(rel_mse(image, reference))
     ratios = np.array(ratios)
     return {"scene": name, "seeds": seeds, "spp": spp, "luminance_mean": float(ratios.mean()),
             "luminance_sd": float(ratios.std(ddof=1)) if seeds > 1 else 0.0,
@@ -51,16 +54,16 @@ def spread(name: str, size, spp: int, seeds: int, ref_spp: int) -> dict:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES), choices=kinds.SCENES)
+    parser.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES), choices=scene_kinds.SCENES)
     parser.add_argument("--seeds", type=int, default=16)
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--resolution", type=int, default=320, help="width; height is 3/4 of it")
     parser.add_argument("--ref-spp", type=int, default=2048)
-    parser.add_argument("--out", type=Path, default=kinds.RESULTS)
+    parser.add_argument("--out", type=Path, default=common.RESULTS)
     args = parser.parse_args(argv)
     if args.seeds < 2 or args.spp < 1:
         parser.error(f"--seeds must be at least 2 and --spp at least 1; got {args.seeds}, {args.spp}")
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(common.VARIANT)
     size = (args.resolution, args.resolution * 3 // 4)
     rows = []
     for name in args.scenes:
@@ -70,10 +73,7 @@ def main(argv=None):
               f"[{row['luminance_min']:.4f}, {row['luminance_max']:.4f}] "
               f"outside 1 %: {row['outside_1_percent']}/{row['seeds']}  relMSE {row['relmse_mean']:.3e}",
               flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / f"seed_spread_{size[0]}"
-    command = " ".join(["python benchmarks/seed_spread.py", *(sys.argv[1:] if argv is None else argv)])
-    stem.with_suffix(".json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
+    command = common.command(__file__, argv)
     lines = [f"# One image's mean luminance over path's, scene seed by scene seed, {size[0]}×{size[1]}",
              "", f"`{command}` (pmic {args.spp} spp, render seed 0; reference: path {args.ref_spp} spp)", "",
              "| scene | seeds | mean | sd | min | max | outside ±1 % | mean relMSE |",
@@ -82,8 +82,8 @@ def main(argv=None):
         lines.append(f"| {r['scene']} | {r['seeds']} | {r['luminance_mean']:.4f} | {r['luminance_sd']:.4f} | "
                      f"{r['luminance_min']:.4f} | {r['luminance_max']:.4f} | {r['outside_1_percent']} | "
                      f"{r['relmse_mean']:.3e} |")
-    stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {stem}.json/.md")
+    md = common.write_results(args.out, f"seed_spread_{size[0]}", {"command": command, "rows": rows}, lines)
+    print(f"wrote {md.with_suffix('')}.json/.md")
 
 
 if __name__ == "__main__":

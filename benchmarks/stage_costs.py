@@ -18,19 +18,17 @@ Writes ``benchmarks/results/stage_costs.{json,md}``.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import time
 from pathlib import Path
 
 import pmic_integrator  # noqa: F401  (registers pmic, points Dr.Jit at libLLVM)
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from pmic_integrator import metrics
+from pmic_integrator.compare import timed_render
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import common
 
 TORI = 18
 N_MAJOR, N_MINOR = 96, 28  #: 96 × 28 × 2 = 5 376 triangles per torus
@@ -119,12 +117,8 @@ def interior(width=320, height=240) -> dict:
 
 def _render(scene, spec, spp):
     integrator = mi.load_dict(spec)
-    dr.sync_thread()
-    t0 = time.perf_counter()
-    image = mi.render(scene, integrator=integrator, spp=spp, seed=1)
-    dr.eval(image)
-    dr.sync_thread()
-    return time.perf_counter() - t0, getattr(integrator, "stats", {}) or {}, np.array(image)
+    image, seconds = timed_render(scene, integrator, spp, seed=1)
+    return seconds, getattr(integrator, "stats", {}) or {}, image
 
 
 def main(argv=None):
@@ -133,9 +127,9 @@ def main(argv=None):
     parser.add_argument("--height", type=int, default=240)
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--repeat", type=int, default=2)
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=common.RESULTS)
     args = parser.parse_args(argv)
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(common.VARIANT)
     scene = mi.load_dict(interior(args.width, args.height))
     triangles = sum(s.primitive_count() for s in scene.shapes() if s.is_mesh())
     pixels = args.width * args.height
@@ -155,8 +149,8 @@ def main(argv=None):
                 best = (seconds, stats, image)
         seconds, stats, image = best
         render_s = stats.get("time_render", seconds)
-        row = {"method": label, "total_s": seconds, "luminance": metrics.mean_luminance(image[..., :3]),
-               "finite": bool(np.isfinite(image).all()),
+        row = {"method": label, "total_s": seconds, "luminance": metrics.mean_luminance(image),
+               "finite": metrics.finite(image),
                **{k: stats[k] for k in ("time_photons", "time_precompute", "time_cache", "time_render",
                                         "records", "photons_global", "photons_caustic") if k in stats},
                "render_us_per_sample": 1e6 * render_s / (pixels * args.spp)}
@@ -165,11 +159,9 @@ def main(argv=None):
     path_cost = rows[0]["render_us_per_sample"]
     for row in rows:
         row["render_cost_over_path"] = row["render_us_per_sample"] / path_cost
-    command = "python benchmarks/stage_costs.py" + (f" --spp {args.spp}" if args.spp != 16 else "")
+    command = common.command(__file__, argv)
     result = {"command": command, "width": args.width, "height": args.height, "spp": args.spp,
               "triangles": triangles, "textures": TORI + 2, "shapes": len(scene.shapes()), "rows": rows}
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "stage_costs.json").write_text(json.dumps(result, indent=1))
     lines = [f"# Stage costs: {triangles} triangles, {TORI + 2} textures, {args.width}×{args.height}, "
              f"{args.spp} spp", "", f"`{command}`", "",
              "Seconds (fastest of the runs, after a warm-up); render cost per sample per pixel, "
@@ -181,7 +173,7 @@ def main(argv=None):
         lines.append(f"| {row['method']} | {f('time_photons')} | {f('time_precompute')} | {f('time_cache')} | "
                      f"{f('time_render')} | {row['total_s']:.2f} | {row['render_us_per_sample']:.2f} | "
                      f"{row['render_cost_over_path']:.2f} | {row.get('records', 0)} | {row['luminance']:.4f} |")
-    (args.out / "stage_costs.md").write_text("\n".join(lines) + "\n")
+    common.write_results(args.out, "stage_costs", result, lines)
     print("\n".join(lines))
 
 

@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import pmic_integrator  # noqa: F401
 import mitsuba as mi
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import common
+
 #: Cells whose first run takes longer are measured once (their noise is small beside
 #: their time, and repeating photon_map would triple the benchmark).
 REPEAT_BELOW_S = 10.0
@@ -58,13 +58,13 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--repeat", type=int, default=3,
                         help="runs per cell, the fastest kept (default 3)")
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=common.RESULTS)
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error(f"--repeat must be at least 1; got {args.repeat}")
     mode = "quick" if args.quick else "full"
     resolution = 128 if args.quick else args.resolution
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(common.VARIANT)
     reference = scenes.load_reference("cornell_box", resolution)
     scene = scenes.load_scene("cornell_box", resolution=resolution, spp=args.spp)
     # Rounds over every cell, not a cell's runs back to back: the machine's speed drifts
@@ -97,11 +97,8 @@ def main(argv=None):
                                              "time_cache_view", "time_render")}}
         rows.append(row)
         print(json.dumps(row), flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
     stem = f"table1_{resolution}" + ("_quick" if args.quick else "")
-    command = "python benchmarks/table1.py " + " ".join(argv or sys.argv[1:])
-    (args.out / f"{stem}.json").write_text(json.dumps({"command": command, "spp": args.spp,
-                                                        "resolution": resolution, "rows": rows}, indent=2))
+    command = common.command(__file__, argv)
     photons = PHOTONS[mode]
     md = [f"# Table 1 at {resolution}², {args.spp} spp", "", f"`{command}`", "",
           f"Total time in seconds (every stage, after a warm-up; the fastest of up to "
@@ -120,7 +117,8 @@ def main(argv=None):
         md.append(f"| {r['method']} | {r['global_photons']} | {r['time_photons']:.2f} / "
                   f"{r['time_precompute']:.2f} / {r['time_cache']:.2f} / {r['time_cache_view']:.2f} / "
                   f"{r['time_render']:.2f} | {r['records']} ({r['records_probes']}) |")
-    (args.out / f"{stem}.md").write_text("\n".join(md) + "\n")
+    common.write_results(args.out, stem, {"command": command, "spp": args.spp, "resolution": resolution,
+                                          "rows": rows}, md)
     print("\n".join(md))
 
 

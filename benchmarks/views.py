@@ -20,19 +20,18 @@ Every configuration renders once untimed first (kernel compilation). Writes
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import sys
 import subprocess
+import sys
 import tempfile
-import time
 from pathlib import Path
 
 import pmic_integrator  # noqa: F401  (LLVM set-up before Mitsuba)
 import mitsuba as mi
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import common
+from common import timed
 
 SENSOR = """<sensor type="perspective"><float name="fov" value="39.3"/>
     <transform name="to_world"><lookat origin="{x:.4f}, 0.0, {z:.4f}" target="0, 0, 0" up="0, 1, 0"/></transform>
@@ -56,21 +55,15 @@ def scene_file(folder: Path, views: int, res: int) -> Path:
     return path
 
 
-def timed(fn):
-    start = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - start
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--views", type=int, default=6)
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=common.RESULTS)
     args = parser.parse_args(argv)
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(common.VARIANT)
     from pmic_integrator.views import render_views
 
     folder = Path(tempfile.mkdtemp())
@@ -104,13 +97,11 @@ def main(argv=None):
                                                         progress=False))
     # A farm without cache files: one process per view, each loading the scene and
     # building its own cache (kernels come from Dr.Jit's on-disk cache, as on a farm).
-    one_view = ("import pmic_integrator, mitsuba as mi, numpy as np, sys; mi.set_variant('llvm_ad_rgb'); "
+    one_view = (f"import pmic_integrator, mitsuba as mi, numpy as np, sys; mi.set_variant({common.VARIANT!r}); "
                 "s = mi.load_file(sys.argv[1]); np.array(mi.render(s, integrator=mi.load_dict("
                 "{'type': 'pmic'}), sensor=int(sys.argv[2]), spp=int(sys.argv[3]), seed=int(sys.argv[2])))")
-    start = time.perf_counter()
-    for v in views:
-        subprocess.run([sys.executable, "-c", one_view, str(path), str(v), str(args.spp)], check=True)
-    seconds = time.perf_counter() - start
+    _, seconds = timed(lambda: [subprocess.run([sys.executable, "-c", one_view, str(path), str(v), str(args.spp)],
+                                               check=True) for v in views])
     rows["pmic, one process per view (cache rebuilt)"] = {"seconds": seconds,
                                                           "views_per_second": args.views / seconds}
     print(f"pmic, one process per view: {seconds:7.2f} s", flush=True)
@@ -131,15 +122,7 @@ def main(argv=None):
           f"rebuilds in one process), {speedup_processes:.2f}x (one process each); threads "
           f"{thread_speedup:.2f}x, {thread_speedup_processes:.2f}x")
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    command = "python benchmarks/views.py " + " ".join(sys.argv[1:] if argv is None else argv)
-    (args.out / "views.json").write_text(json.dumps({"command": command, "views": args.views,
-                                                     "resolution": args.resolution, "spp": args.spp,
-                                                     "rows": rows, "dask_speedup_over_rebuilt": speedup,
-                                                     "dask_speedup_over_processes": speedup_processes,
-                                                     "dask_threads_speedup_over_rebuilt": thread_speedup,
-                                                     "dask_threads_speedup_over_processes": thread_speedup_processes},
-                                                    indent=2))
+    command = common.command(__file__, argv)
     md = [f"# {args.views} views of the Cornell box, {args.resolution}², {args.spp} spp", "",
           f"`{command}`", "", "| configuration | time [s] | views/s |", "|---|---|---|"]
     md += [f"| {k} | {v['seconds']:.2f} | {v['views_per_second']:.2f} |" for k, v in rows.items()]
@@ -147,8 +130,12 @@ def main(argv=None):
                f"its own cache): {dask_name}: {speedup:.2f}x sooner than the rebuilds in one warm "
                f"process, {speedup_processes:.2f}x sooner than one process per view; "
                f"{thread_name}: {thread_speedup:.2f}x and {thread_speedup_processes:.2f}x."]
-    (args.out / "views.md").write_text("\n".join(md) + "\n")
-    print("wrote", args.out / "views.md")
+    print("wrote", common.write_results(
+        args.out, "views", {"command": command, "views": args.views, "resolution": args.resolution,
+                            "spp": args.spp, "rows": rows, "dask_speedup_over_rebuilt": speedup,
+                            "dask_speedup_over_processes": speedup_processes,
+                            "dask_threads_speedup_over_rebuilt": thread_speedup,
+                            "dask_threads_speedup_over_processes": thread_speedup_processes}, md))
 
 
 if __name__ == "__main__":

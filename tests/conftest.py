@@ -11,9 +11,3 @@ _llvm.configure()
 import mitsuba as mi  # noqa: E402
 
 mi.set_variant("llvm_ad_rgb")
-
-import sys as _sys  # noqa: E402
-from pathlib import Path as _Path  # noqa: E402
-
-# Scene builders shared by the tests (tests/scene_builders.py).
-_sys.path.insert(0, str(_Path(__file__).parent))

@@ -433,14 +433,11 @@ def build_scene_dict(spec):
 # -------------------------------------------------------------------------------------
 # Measurements
 # -------------------------------------------------------------------------------------
-def luminance(img):
-    import numpy as np
-    a = np.asarray(img, dtype=np.float64)
-    return 0.2126 * a[..., 0] + 0.7152 * a[..., 1] + 0.0722 * a[..., 2]
-
-
 def luminance_mean(img):
-    return float(luminance(img).mean())
+    """Mean Rec. 709 luminance of an image's first three channels."""
+    import numpy as np
+    from pmic_integrator.metrics import mean_luminance
+    return mean_luminance(np.asarray(img)[..., :3])
 
 
 def _finite_info(img):

@@ -9,7 +9,7 @@ import pmic_integrator
 from pmic_integrator import metrics, scenes
 from pmic_integrator.settings import AOVS
 
-from scene_builders import SMALL_PMIC as SMALL, pmic_cornell as cornell
+from pmic_integrator.kinds import SMALL_PMIC as SMALL, pmic_cornell as cornell
 
 
 # -------------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-import scene_builders as sb
+from pmic_integrator import kinds as sb
 
 #: Default photon counts (at 50k the edge bias of density estimates alone is ~2 %).
 SMALL = {"global_photons": 200_000, "caustic_photons": 50_000, "gather_rays": 128}

@@ -7,7 +7,7 @@ import pytest
 from pmic_integrator import cache
 from pmic_integrator.cache import CacheRecords, RecordIndex
 
-from scene_builders import cornell
+from pmic_integrator.kinds import cornell
 
 
 def _covers_np(x, n, rp, rn, rr, a):
@@ -350,7 +350,7 @@ def test_records_direct_light_of_a_sky_follows_the_sky_their_gather_saw():
     they met the window a few times each, a skewed draw (the image moved by ±1 % from
     one scene seed to the next). Against 4096 plain samples over 8 seeds: relative
     error 0.30 against 0.66 (measured), both unbiased."""
-    from scene_builders import window_room
+    from pmic_integrator.kinds import window_room
     from pmic_integrator import pipeline
     from pmic_integrator.settings import Settings
 
@@ -384,7 +384,7 @@ def test_guides_hold_the_sky_seen_through_a_window_and_cut_its_noise(monkeypatch
     follow what the record saw, where samples drawn over the whole sky mostly meet the
     walls. Same mean (drawing the two kinds by stratum instead of by coin made it 11 %
     dark), less noise in the direct light (98 % of the noise in a window-lit room)."""
-    from scene_builders import window_room
+    from pmic_integrator.kinds import window_room
 
     scene = mi.load_dict(window_room(size=(64, 48)))
     spec = {"type": "pmic", "global_photons": 50_000, "caustic_photons": 0, "aovs": "direct"}

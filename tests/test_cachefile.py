@@ -10,7 +10,7 @@ import pytest
 
 from pmic_integrator import cachefile
 
-from scene_builders import SMALL_PMIC as SMALL, pmic_cornell
+from pmic_integrator.kinds import SMALL_PMIC as SMALL, pmic_cornell
 
 
 def cornell(**params):

@@ -10,7 +10,7 @@ import pytest
 
 from pmic_integrator import camera
 
-from scene_builders import SMALL_PMIC as SMALL, cornell
+from pmic_integrator.kinds import SMALL_PMIC as SMALL, cornell
 
 
 def _largest_kernel(scene, integrator, spp, seed):

@@ -1,5 +1,5 @@
 """A smooth coat's reflection of the lights is traced at the first diffuse vertex
-(``PMICIntegrator._coat_emission``): the same mean as sampling it with the rest of the
+(``pmic_integrator.render.direct.coat_emission``): the same mean as sampling it with the rest of the
 BSDF, and less noise on a smooth plastic under a sky."""
 import dataclasses
 
@@ -8,7 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-import scene_builders as sb
+from pmic_integrator import kinds as sb
 from pmic_integrator import pipeline
 
 SIZE = (40, 30)

@@ -7,7 +7,7 @@ import pytest
 from pmic_integrator import cachefile
 from pmic_integrator.fingerprint import scene_fingerprint
 
-from scene_builders import SMALL_PMIC, _sensor, two_rooms
+from pmic_integrator.kinds import SMALL_PMIC, _sensor, two_rooms
 
 T = mi.ScalarTransform4f
 

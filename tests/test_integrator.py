@@ -11,7 +11,7 @@ import pytest
 import pmic_integrator
 from pmic_integrator.integrator import PMICIntegrator
 
-from scene_builders import SMALL_PMIC as SMALL, envmap_exterior, pmic_cornell as small_cornell
+from pmic_integrator.kinds import SMALL_PMIC as SMALL, envmap_exterior, pmic_cornell as small_cornell
 
 
 def test_load_dict_and_render():
@@ -335,7 +335,7 @@ def test_an_environment_map_with_nan_or_inf_texels_is_refused_naming_it():
 
 
 def _rough_floor_rooms(size=(32, 24)):
-    import scene_builders as sb
+    from pmic_integrator import kinds as sb
 
     return mi.load_dict(sb.two_rooms(size=size, floor_bsdf={"type": "roughconductor", "alpha": 0.25,
                                                              "material": "Al"}))
@@ -343,20 +343,20 @@ def _rough_floor_rooms(size=(32, 24)):
 
 def test_deferred_caustic_reads_give_the_image_of_reads_in_the_loop(monkeypatch):
     """In pmic's own render the caustic-map reads wait for the end of the camera loop
-    and are made over the lanes that can find a photon (PMICIntegrator._deferred_caustics);
+    and are made over the lanes that can find a photon (pmic_integrator.render.caustics);
     read in the loop instead (as for a caller of sample() alone), the image is the same
     up to the order of float sums. Two renders with deferral are bit-identical. (A
     pixel's samples sharing one estimate is turned off here: see the next test.)"""
-    from pmic_integrator import integrator as integrator_module
-    monkeypatch.setattr(integrator_module, "CAUSTIC_SHARE_RADII", 0.0)
+    from pmic_integrator.render import caustics, config
+    monkeypatch.setattr(caustics, "CAUSTIC_SHARE_RADII", 0.0)
     scene = _rough_floor_rooms()
     spec = {"type": "pmic", **SMALL}
     integrator = mi.load_dict(spec)
     deferred = np.array(mi.render(scene, integrator=integrator, spp=4, seed=3))
-    assert integrator._defers_caustics(integrator.prepared)
+    assert config.defers_caustics(integrator.settings, integrator.prepared)
     again = np.array(mi.render(scene, integrator=integrator, spp=4, seed=3))
     assert np.array_equal(deferred, again)
-    monkeypatch.setattr(PMICIntegrator, "_defers_caustics", lambda self, prepared: False)
+    monkeypatch.setattr(config, "defers_caustics", lambda settings, prepared: False)
     inline = np.array(mi.render(scene, integrator=integrator, spp=4, seed=3))
     assert np.allclose(deferred, inline, rtol=1e-4, atol=1e-6)
     assert not np.array_equal(deferred, np.zeros_like(deferred))
@@ -369,8 +369,8 @@ def test_a_pixels_samples_share_their_first_caustic_estimate_without_changing_th
     were 60 % of the render). The image stays that of one estimate per sample: mean
     within 0.2 %, 99 % of the pixels within 3 % and all within 6 %. It is not the same
     image: estimates were shared."""
-    import scene_builders as sb
-    from pmic_integrator import integrator as integrator_module
+    from pmic_integrator import kinds as sb
+    from pmic_integrator.render import caustics, config
 
     d = sb.window_room(size=(32, 24))
     d["pane"] = {"type": "rectangle", "bsdf": {"type": "thindielectric"},
@@ -378,8 +378,8 @@ def test_a_pixels_samples_share_their_first_caustic_estimate_without_changing_th
     scene = mi.load_dict(d)
     integrator = mi.load_dict({"type": "pmic", **SMALL})
     shared = np.array(mi.render(scene, integrator=integrator, spp=8, seed=2))
-    assert integrator._defers_caustics(integrator.prepared)
-    monkeypatch.setattr(integrator_module, "CAUSTIC_SHARE_RADII", 0.0)
+    assert config.defers_caustics(integrator.settings, integrator.prepared)
+    monkeypatch.setattr(caustics, "CAUSTIC_SHARE_RADII", 0.0)
     own = np.array(mi.render(scene, integrator=integrator, spp=8, seed=2))
     assert not np.array_equal(shared, own)
     assert shared.mean() == pytest.approx(own.mean(), rel=2e-3)
@@ -395,7 +395,8 @@ def test_deferred_caustic_reads_run_in_passes_that_bound_their_memory(monkeypatc
     """With reads deferred, a wavefront holds at most DEFERRED_WAVEFRONT samples: the
     render runs in several passes, each seeded on its own, with the same mean (within
     the noise of 16 samples of a dim room lit through a door)."""
-    from pmic_integrator import camera, integrator as integrator_mod
+    from pmic_integrator import camera
+    from pmic_integrator.render import config
 
     scene = _rough_floor_rooms(size=(16, 12))
     spec = {"type": "pmic", **SMALL}
@@ -410,7 +411,7 @@ def test_deferred_caustic_reads_run_in_passes_that_bound_their_memory(monkeypatc
     monkeypatch.setattr(camera, "pass_counts", counted)
     whole = np.array(mi.render(scene, integrator=mi.load_dict(spec), spp=16, seed=0))
     assert passes[-1] == [16]
-    monkeypatch.setattr(integrator_mod, "DEFERRED_WAVEFRONT", 16 * 12 * 4)
+    monkeypatch.setattr(config, "DEFERRED_WAVEFRONT", 16 * 12 * 4)
     split = np.array(mi.render(scene, integrator=mi.load_dict(spec), spp=16, seed=0))
     assert passes[-1] == [4, 4, 4, 4]
     assert np.isfinite(split).all()

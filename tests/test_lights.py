@@ -8,7 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-import scene_builders as sb
+from pmic_integrator import kinds as sb
 from pmic_integrator import cachefile, lights
 from pmic_integrator.lights import RecordLights
 

@@ -8,7 +8,7 @@ import pytest
 from pmic_integrator import cache, gather, photons, pipeline, streams
 from pmic_integrator.settings import Settings
 
-from scene_builders import SMALL_PMIC, cornell, courtyard
+from pmic_integrator.kinds import SMALL_PMIC, cornell, courtyard
 
 
 def settings(**params):
@@ -456,7 +456,7 @@ def test_open_scenes_gather_a_quarter_of_the_rays(name, rounds, monkeypatch):
     rooms gather all of their rays at once (pipeline.FIRST_GATHER_SHARE)."""
     from pmic_integrator import cache, scenes
     from pmic_integrator.settings import rays_strata
-    import scene_builders as sb
+    from pmic_integrator import kinds as sb
 
     used = []
     compute = cache.compute_records
@@ -480,7 +480,7 @@ def test_a_caustic_map_that_holds_a_rooms_light_through_glass_is_kept():
     under a fifth of the caustic pass's paths store a photon (the window is small). Such
     a map is kept (pipeline.CAUSTIC_MIN_YIELD): gathered instead, that light was 18×
     noisier per second. A map of a few dozen photons is still dropped (an open sky)."""
-    import scene_builders as sb
+    from pmic_integrator import kinds as sb
 
     d = sb.window_room(size=(16, 12))
     d["pane"] = {"type": "rectangle", "bsdf": {"type": "thindielectric"},
@@ -499,7 +499,7 @@ def test_a_caustic_map_that_holds_a_rooms_light_through_glass_is_kept():
 
 
 def _pane_room():
-    import scene_builders as sb
+    from pmic_integrator import kinds as sb
 
     d = sb.window_room(size=(16, 12))
     d["pane"] = {"type": "rectangle", "bsdf": {"type": "thindielectric"},
@@ -566,7 +566,7 @@ def test_normal_bins_rule_out_only_estimates_that_are_zero():
     "may" (checked at points spread over a room's surfaces and just off them, with
     their normals and random ones), and it rules out the far side of a 4 cm wall whose
     other side holds the photons (the rough floor's caustic in the lit room)."""
-    import scene_builders as sb
+    from pmic_integrator import kinds as sb
     from pmic_integrator import irradiance
 
     d = sb.two_rooms(size=(16, 12), floor_bsdf={"type": "roughconductor", "alpha": 0.25, "material": "Al"})
@@ -646,7 +646,7 @@ def test_walls_lit_through_a_pane_beside_a_sun_patch_read_enough_caustic_photons
     fitted to the photons gave 78-81 % and 7-12 % of the points at 0; the same mean."""
     import math
 
-    import scene_builders as sb
+    from pmic_integrator import kinds as sb
     from pmic_integrator import irradiance
 
     d = _pane_room()

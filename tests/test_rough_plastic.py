@@ -8,7 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-import scene_builders as sb
+from pmic_integrator import kinds as sb
 from pmic_integrator import bsdfs, gather, pipeline
 from pmic_integrator.settings import Settings
 

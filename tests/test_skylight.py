@@ -8,7 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-import scene_builders as sb
+from pmic_integrator import kinds as sb
 from pmic_integrator import skylight
 from pmic_integrator.skylight import SkySampler
 
@@ -147,7 +147,7 @@ def test_tables_follow_the_cosine_to_their_bins_centre(normal):
 def _open_ground():
     """A grey ground and two grey boxes under a constant sky, seen from above: the
     boxes' walls face half of the sky, the ground sees it all but where the boxes stand
-    (open: scene_builders.courtyard, walled and roofed, has more of its noise in the
+    (open: kinds.courtyard, walled and roofed, has more of its noise in the
     walls' occlusion)."""
     return mi.load_dict(open_ground_dict())
 

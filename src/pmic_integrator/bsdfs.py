@@ -234,21 +234,6 @@ def peak_within(bsdf, si: mi.SurfaceInteraction3f, active, mean: mi.Float,
     return active & (mean > 0) & (peak <= peak_ratio * mean)
 
 
-#: A BSDF whose lobes cannot be taken apart (principled) reads the cache at a camera
-#: vertex with its whole response only where it is this close to diffuse for the
-#: incident direction: its value at the mirror direction at most this many times its
-#: cosine-weighted mean (:func:`near_diffuse`; gather hits have their own bound,
-#: ``gather.GATHER_WHOLE_PEAK_RATIO``). Read wherever a diffuse lobe would be, a
-#: Cornell box of principled walls came out 3-8 % off in places at roughness 0.5,
-#: 10-20 % with metallic 0.5 and roughness 0.3 (glossy reflections of the light
-#: averaged away); at 2, within 1.4 % and 0.7 % (the metallic walls never read: they
-#: are traced as before); at 4, 3 % and 3 %. In a dim room lit through a door
-#: (benchmarks/scene_kinds.py's door_principled) it left the image ~2 % dark for most
-#: photon seeds (a quadrant 5 %), mostly from the gathers' even-light approximation at
-#: principled hits (README, limits; 0.987 -> 0.993 of path once gathers went on through
-#: the glossiest hits); at 1.2 it is unbiased but reads too rarely to pay (0.39x path's
-#: speed there, against 1.87x).
-WHOLE_PEAK_RATIO = 2.0
 
 
 #: Probability of the glossy lobes where a BSDF's diffuse and glossy lobes are

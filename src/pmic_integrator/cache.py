@@ -17,7 +17,7 @@ sum cause no brightness step (one of the paper's weak points).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import drjit as dr
 import mitsuba as mi
@@ -160,41 +160,39 @@ class CacheRecords:
         z = dr.zeros(mi.Vector3f, count)
         return CacheRecords(p, n, radius, dr.zeros(mi.Color3f, count), (z, z, z), (z, z, z))
 
+    def _filled(self, name: str):
+        """Optional field ``name``, or what records without it hold in its place (for
+        :meth:`extend`): no nearest hit is known (+inf), the shading normal is the
+        normal, a guide guides nothing (zeros), every sector's hit is the one known."""
+        value = getattr(self, name)
+        if value is not None:
+            return value
+        if name == "obstacle":
+            return dr.full(mi.Float, dr.inf, self.count)
+        if name == "shading_normal":
+            return self.normal
+        if name in ("guide", "sky_guide"):
+            return dr.zeros(mi.Float, self.count * GUIDE_BINS)
+        return dr.repeat(self._filled("obstacle"), OBSTACLE_SECTORS)  # obstacle_sectors
+
     def extend(self, other: "CacheRecords") -> "CacheRecords":
+        """These records followed by ``other``'s, field by field (an optional field
+        either holds is filled in for the other: :meth:`_filled`)."""
         if self.count == 0:
             return other
         if other.count == 0:
             return self
-        obstacle = None
-        if self.obstacle is not None or other.obstacle is not None:
-            far = lambda r: r.obstacle if r.obstacle is not None else dr.full(mi.Float, dr.inf, r.count)  # noqa: E731
-            obstacle = concat([far(self), far(other)], mi.Float)
-        shading_normal = None
-        if self.shading_normal is not None or other.shading_normal is not None:
-            own = lambda r: r.shading_normal if r.shading_normal is not None else r.normal  # noqa: E731
-            shading_normal = concat([own(self), own(other)], mi.Vector3f)
-        guide = None
-        if self.guide is not None or other.guide is not None:
-            bins = lambda r: r.guide if r.guide is not None else dr.zeros(mi.Float, r.count * GUIDE_BINS)  # noqa: E731
-            guide = concat([bins(self), bins(other)], mi.Float)
-        sky_guide = None
-        if self.sky_guide is not None or other.sky_guide is not None:
-            sky = lambda r: r.sky_guide if r.sky_guide is not None else dr.zeros(mi.Float, r.count * GUIDE_BINS)  # noqa: E731
-            sky_guide = concat([sky(self), sky(other)], mi.Float)
-        sectors = None
-        if self.obstacle_sectors is not None or other.obstacle_sectors is not None:
-            # (Records without them: their one nearest hit in every sector.)
-            per = lambda r: r.obstacle_sectors if r.obstacle_sectors is not None else dr.repeat(  # noqa: E731
-                r.obstacle if r.obstacle is not None else dr.full(mi.Float, dr.inf, r.count), OBSTACLE_SECTORS)
-            sectors = concat([per(self), per(other)], mi.Float)
-        return CacheRecords(
-            concat([self.position, other.position], mi.Point3f),
-            concat([self.normal, other.normal], mi.Vector3f),
-            concat([self.radius, other.radius], mi.Float),
-            concat([self.irradiance, other.irradiance], mi.Color3f),
-            tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_t, other.grad_t)),
-            tuple(concat([a, b], mi.Vector3f) for a, b in zip(self.grad_r, other.grad_r)),
-            obstacle, shading_normal, guide, sky_guide, sectors)
+        joined = {}
+        for f in fields(CacheRecords):
+            mine, theirs = getattr(self, f.name), getattr(other, f.name)
+            if isinstance(mine, tuple):
+                joined[f.name] = tuple(concat([a, b], type(a)) for a, b in zip(mine, theirs))
+            elif mine is None and theirs is None:
+                joined[f.name] = None
+            else:
+                mine, theirs = self._filled(f.name), other._filled(f.name)
+                joined[f.name] = concat([mine, theirs], type(mine))
+        return CacheRecords(**joined)
 
     def blend(self, other: "CacheRecords", weight: float) -> "CacheRecords":
         """These records with a second, independent gather at the same places
@@ -919,6 +917,10 @@ def _relative_rotation(direct: mi.Color3f, gradient: mi.Vector3f) -> mi.Vector3f
 class RecordIndex:
     """Records plus a ball grid of their reach ``a·R``, for coverage and interpolation."""
 
+    #: What an index keeps when :meth:`for_lookup` builds its lookup grids (the rest
+    #: is built from the records).
+    KEPT_BY_LOOKUP = ("direct", "direct_rotation", "direct_all", "holds_caustics", "lights")
+
     records: CacheRecords
     max_error: float
     grid: BallGrid  #: balls of radius a·R
@@ -974,11 +976,8 @@ class RecordIndex:
         if self.backup_grid is not None:
             return self
         index = RecordIndex.build(self.records, self.max_error, self.scene, self.lift)
-        index.direct = self.direct
-        index.direct_rotation = self.direct_rotation
-        index.direct_all = self.direct_all
-        index.holds_caustics = self.holds_caustics
-        index.lights = self.lights
+        for name in RecordIndex.KEPT_BY_LOOKUP:
+            setattr(index, name, getattr(self, name))
         return index
 
     def pack(self) -> "RecordIndex":

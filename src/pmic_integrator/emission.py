@@ -9,7 +9,7 @@ too high (``a`` is the angle between the local and the world direction) inside a
 ellipse of minor axis ``R |cos a|``, and not at all outside it, while the weight still
 assumes an untilted disk of area ``pi R^2``. Light tracing (``ptracer``) and photon
 emission through ``scene.sample_emitter_ray`` are then too bright (and very noisy, the
-``1/|cos a|`` factor has no finite variance). See ``benchmarks/envmap_emission_check.py``.
+``1/|cos a|`` factor has no finite variance). See ``validation/envmap_emission_check.py``.
 
 :func:`sample_emitter_rays` is a drop-in replacement for ``scene.sample_emitter_ray``.
 For every *infinite* emitter (``envmap``, ``constant``, ``directional``) it samples the

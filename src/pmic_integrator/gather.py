@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from .cases import GATHER_PEAK_RATIO, GATHER_ROULETTE_BELOW, lobes_of
 from .bsdfs import (diffuse_response, lobes_separable,  # noqa: F401
                     near_diffuse, non_diffuse_context, response_azimuths)
 from ._jit import concat, opaque_float, opaque_u32, segment_blocked, shading_normal_on_side
@@ -46,18 +47,6 @@ VISIBILITY_LIFT = 0.02
 #: (:func:`~pmic_integrator._jit.segment_blocked`'s ``past``): a target on the plane of a
 #: wall standing on its surface counts as behind the wall.
 PAST_TARGET_LIFTS = 0.5
-#: A gather hit on a BSDF whose lobes cannot be taken apart (principled) reflects the
-#: photon's irradiance with the whole BSDF's response (as if lit evenly) where its
-#: value at the mirror direction is at most this many times its cosine-weighted mean
-#: (:func:`~pmic_integrator.bsdfs.near_diffuse`); beyond, the gather ray goes on through
-#: a sample of the whole BSDF. (The camera's WHOLE_PEAK_RATIO is 2.) Read everywhere,
-#: a glossy metal floor (metallic 0.86, roughness 0.13: a peak ratio in the tens) read
-#: 76 % too bright along the gather rays that met it (a random room's first-hit image
-#: +12 %, 12 seeds); at 4, 0.96-1.05 of path's radiance along the same rays (three
-#: seeds; at 8, 1.07), and the door-lit room of Blender-default principled (roughness
-#: 0.5: 1.3 at normal incidence, 6 at 66°) 0.987 -> 0.993 of path, its cache stage
-#: 0.44-0.49 -> 0.55-0.59 s (two interleaved rounds).
-GATHER_WHOLE_PEAK_RATIO = 4.0
 #: A gather ray continued through a glossy lobe whose next hit can only read photons
 #: (its emission is not counted: a caustic map holds it) survives with probability
 #: min(1, its throughput) (Russian roulette, unbiased). A rough plastic's coat passes
@@ -69,10 +58,6 @@ GATHER_WHOLE_PEAK_RATIO = 4.0
 #: light, and a mirror sphere's 10 % loss, played by roulette, made the records that
 #: see it noisier (the bundled caustics box's relMSE +7 %) for no time saved.
 GATHER_ROULETTE = True
-#: ...and only below this throughput: a rough metal passes most of the light, so
-#: roulette there saves little, and it made the records that see the lamp room's
-#: shades noisier (its relMSE 0.211 -> 0.224).
-GATHER_ROULETTE_BELOW = 0.5
 #: Records' gathers of at least this many rays answer their photon lookups after the
 #: rays' walk, together (:func:`gather_radiance`): in-process A/B of the cache stage,
 #: Cornell box at 1M photons 0.48-0.60 -> 0.40-0.53 s, the bundled window-lit
@@ -436,22 +421,22 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
     active = walk.active & si.is_valid()
     distance = dr.select(active & (bounce == 0), si.t, walk.distance)
     bsdf = si.bsdf(ray)
-    flags = bsdf.flags()
+    lobes = lobes_of(bsdf.flags())  # (the vertex cases: pmic_integrator.cases)
     # Normal on the side the ray arrives from, to match photon normals.
     n = mi.Vector3f(si.n)
     n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
-    diffuse = active & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
-    glossy = mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy)
+    diffuse = active & lobes.diffuse
+    glossy = lobes.specular
     # A BSDF that ignores lobe masks (principled) reflects the photon's irradiance with
     # its whole response only where it is nearly diffuse for this ray (as camera
-    # vertices read the cache; GATHER_WHOLE_PEAK_RATIO); elsewhere (a glossy metal) the
+    # vertices read the cache; GATHER_PEAK_RATIO); elsewhere (a glossy metal) the
     # ray goes on through a sample of the whole BSDF, reading nothing here.
     whole, separable = mi.Bool(False), mi.Bool(True)
     if source.inseparable:
         whole = diffuse & glossy & (bounce < GATHER_SPECULAR_BOUNCES)
         separable = lobes_separable(bsdf, si, whole)
         whole &= ~separable
-        whole &= ~near_diffuse(bsdf, si, whole, GATHER_WHOLE_PEAK_RATIO)
+        whole &= ~near_diffuse(bsdf, si, whole, GATHER_PEAK_RATIO)
         diffuse &= ~whole
     response = diffuse_response(bsdf, si, diffuse,
                                 azimuths=response_azimuths(source.leaning))

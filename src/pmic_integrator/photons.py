@@ -28,7 +28,8 @@ import mitsuba as mi
 
 from ._jit import (ONE_MINUS_EPSILON, concat, interleave, opaque_float, opaque_u32, rng as make_rng, scatter_count,
                    shading_normal_on_side)
-from .bsdfs import dark_side, glossy_beside_diffuse, lobes_separable, sample_lobes_apart
+from .bsdfs import dark_side, lobes_separable, sample_lobes_apart
+from .cases import lobes_of
 from .emission import choose_emitter, emission_bounds, sample_emitter_rays
 from .streams import photon_batch_seed
 
@@ -197,11 +198,6 @@ class PhotonMap:
         return per * self.count + packed
 
 
-def _is_specular(flags) -> mi.Bool:
-    """A lobe that keeps light focused: delta or glossy (near-specular)."""
-    return mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy)
-
-
 def shading_normal_factors(si: mi.SurfaceInteraction3f, n: mi.Vector3f, to_light: mi.Vector3f,
                            wo_local: mi.Vector3f | None = None):
     """Factors that make photons agree with ``path`` on meshes with shading normals.
@@ -294,14 +290,10 @@ class EmissionGuide:
         return origin, direction, dr.rcp(dr.maximum(p_origin * p_direction, 1e-30))
 
 
-def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
-                 max_store_depth: int, bounds: tuple, inseparable: bool = True,
-                 guide: EmissionGuide | None = None, samples: list | None = None):
-    """Trace ``n_paths`` light paths; return photon arrays and their path indices.
-    ``bounds``: the scene's :func:`emission_bounds`; ``inseparable``: some BSDF may
-    ignore lobe masks (tested at every bounce); ``guide``: emission samples drawn from
-    it; ``samples``: a list that receives the paths' emission samples (origin,
-    direction) as drawn."""
+def _emit_batch(scene: mi.Scene, first_path: int, n_paths: int, seed: int, bounds: tuple,
+                guide: EmissionGuide | None, samples: list | None):
+    """``(rng, path_id, ray, flux, emitter)`` of ``n_paths`` light paths leaving the
+    emitters (see :func:`_trace_batch`)."""
     rng = make_rng(n_paths, seed, stream=first_path)
     path_id = dr.arange(mi.UInt32, n_paths) + opaque_u32(first_path)
     u_choice = rng.next_float32()
@@ -328,6 +320,41 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
                                              mi.Bool(True), bounds=bounds)
     if guided_weight is not None:
         flux = flux * guided_weight
+    return rng, path_id, ray, flux, emitter
+
+
+def _survivors(alive, rng, ray, flux, specular_so_far, shared, from_delta, path_id):
+    """The photons of ``alive`` (their arrays and ``rng``'s state gathered in place)."""
+    keep = dr.compress(alive)
+    lone = dr.width(keep) == 1
+    if lone:
+        # One photon left: it goes on beside a dead twin (zero flux: not stored, not
+        # continued). Dr.Jit compiles one-element arrays as scalars: a lone photon
+        # made its own kernels (a whole bounce's, 0.1 s), whenever a seed left one.
+        keep = dr.gather(mi.UInt32, keep, mi.UInt32(0, 0))
+    ray = dr.gather(mi.Ray3f, ray, keep)
+    flux = dr.gather(mi.Color3f, flux, keep)
+    if lone:
+        flux = dr.select(dr.arange(mi.UInt32, 2) == 0, flux, 0.0)
+    specular_so_far = dr.gather(mi.Bool, specular_so_far, keep)
+    from_delta = dr.gather(mi.Bool, from_delta, keep)
+    shared = dr.gather(mi.Bool, shared, keep)
+    path_id = dr.gather(mi.UInt32, path_id, keep)
+    rng.state = dr.gather(mi.UInt64, rng.state, keep)
+    rng.inc = dr.gather(mi.UInt64, rng.inc, keep)
+    return ray, flux, specular_so_far, shared, from_delta, path_id
+
+
+def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
+                 max_store_depth: int, bounds: tuple, inseparable: bool = True,
+                 guide: EmissionGuide | None = None, samples: list | None = None):
+    """Trace ``n_paths`` light paths; return photon arrays and their path indices.
+    ``bounds``: the scene's :func:`emission_bounds`; ``inseparable``: some BSDF may
+    ignore lobe masks (tested at every bounce); ``guide``: emission samples drawn from
+    it; ``samples``: a list that receives the paths' emission samples (origin,
+    direction) as drawn."""
+    rng, path_id, ray, flux, emitter = _emit_batch(scene, first_path, n_paths, seed, bounds,
+                                                   guide, samples)
     specular_so_far = dr.full(mi.Bool, True, n_paths)
     shared = dr.full(mi.Bool, True, n_paths)  # no bounce sampled lobes apart (yet)
     from_delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
@@ -343,8 +370,8 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         # only: it must not poison the estimates around it.
         valid = si.is_valid() & (dr.max(flux) > 0) & dr.all(dr.isfinite(flux))
         bsdf = si.bsdf(ray)
-        flags = bsdf.flags()
-        has_diffuse = valid & mi.has_flag(flags, mi.BSDFFlags.Diffuse)
+        lobes = lobes_of(bsdf.flags())  # (the vertex cases: pmic_integrator.cases)
+        has_diffuse = valid & lobes.diffuse
         # Not on the dark side of a one-sided surface (the outside of a room of thin
         # walls, lit by a sky): nothing there reflects, no lookup from the lit side
         # accepts it, and it would take a share of the map, and records, for nothing.
@@ -374,7 +401,7 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         u1, u2 = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
         # A bounce off a BSDF that ignores lobe masks (principled) counts as diffuse:
         # the camera path cannot split its lobes either, so it must not be a caustic.
-        separable = lobes_separable(bsdf, si, valid & has_diffuse & _is_specular(flags)) \
+        separable = lobes_separable(bsdf, si, valid & has_diffuse & lobes.specular) \
             if inseparable else mi.Bool(True)
         # Rough plastic, for the caustic map: each lobe sampled apart, so that a photon
         # that took the glossy lobe carries that lobe's light only (sample_lobes_apart).
@@ -382,15 +409,15 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         # that fallback estimates leave to the caustic map: there half of the bounces
         # took the weak glossy lobe and ended, and 200k photons took 1.2 s instead of
         # 0.7 s in the 97k-triangle room of benchmarks/stage_costs.py.)
-        lobes = valid & glossy_beside_diffuse(flags) & separable
-        shared &= ~lobes  # the two passes sample this bounce differently
-        apart = lobes & (kind == CAUSTIC)
+        two_lobes = valid & lobes.rough_coat & separable
+        shared &= ~two_lobes  # the two passes sample this bounce differently
+        apart = two_lobes & (kind == CAUSTIC)
         bs, bsdf_weight = bsdf.sample(ctx, si, u1, u2, valid & ~apart)
         bs_apart, weight_apart = sample_lobes_apart(bsdf, si, u1, u2, apart, ctx.mode)
         bs[apart] = bs_apart
         bsdf_weight[apart] = weight_apart
         bsdf_weight = bsdf_weight * shading_normal_factors(si, n, -ray.d, bs.wo)[1]
-        sampled_specular = _is_specular(bs.sampled_type) & separable
+        sampled_specular = lobes_of(bs.sampled_type).specular & separable
         specular_so_far &= sampled_specular
         alive = valid & (bs.pdf > 0) & (dr.max(bsdf_weight) > 0)
         if kind == CAUSTIC:
@@ -401,23 +428,8 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         flux = flux * bsdf_weight / dr.maximum(survive, 1e-8)
         ray = si.spawn_ray(si.to_world(bs.wo))
         dr.eval(alive, flux, ray, specular_so_far, shared, from_delta, rng.state, rng.inc)
-        keep = dr.compress(alive)
-        lone = dr.width(keep) == 1
-        if lone:
-            # One photon left: it goes on beside a dead twin (zero flux: not stored, not
-            # continued). Dr.Jit compiles one-element arrays as scalars: a lone photon
-            # made its own kernels (a whole bounce's, 0.1 s), whenever a seed left one.
-            keep = dr.gather(mi.UInt32, keep, mi.UInt32(0, 0))
-        ray = dr.gather(mi.Ray3f, ray, keep)
-        flux = dr.gather(mi.Color3f, flux, keep)
-        if lone:
-            flux = dr.select(dr.arange(mi.UInt32, 2) == 0, flux, 0.0)
-        specular_so_far = dr.gather(mi.Bool, specular_so_far, keep)
-        from_delta = dr.gather(mi.Bool, from_delta, keep)
-        shared = dr.gather(mi.Bool, shared, keep)
-        path_id = dr.gather(mi.UInt32, path_id, keep)
-        rng.state = dr.gather(mi.UInt64, rng.state, keep)
-        rng.inc = dr.gather(mi.UInt64, rng.inc, keep)
+        ray, flux, specular_so_far, shared, from_delta, path_id = _survivors(
+            alive, rng, ray, flux, specular_so_far, shared, from_delta, path_id)
         dr.eval(ray, flux, specular_so_far, shared, from_delta, path_id, rng.state, rng.inc)
     return (concat(out["position"], mi.Point3f), concat(out["normal"], mi.Vector3f),
             concat(out["power"], mi.Color3f), concat(out["depth"], mi.UInt32),

@@ -14,7 +14,7 @@ passed through an XML parameter, which substitutes plain strings only. For those
 ``mi.render(scene)`` needs no extra argument.
 
 References are stored as ``scenes/references/{name}_{resolution}.exr`` (RGB, float32,
-linear) and are made by ``benchmarks/make_references.py``.
+linear) and are made by ``tools/make_references.py``.
 
 This module never calls ``mi.set_variant``: the caller chooses the variant (the
 references were rendered with ``llvm_ad_rgb``, but any RGB variant loads the scenes).
@@ -277,7 +277,7 @@ def read_exr_metadata(path: str | os.PathLike) -> dict[str, str]:
 
 def reference_command(name: str | None = None, resolution: int = DEFAULT_RESOLUTION) -> str:
     """Shell command that (re)creates the reference(s), for error messages and READMEs."""
-    cmd = "python benchmarks/make_references.py"
+    cmd = "python tools/make_references.py"
     if resolution != DEFAULT_RESOLUTION:
         cmd += f" --resolution {resolution}"
     if name is not None:

@@ -14,8 +14,8 @@ headers of all the reference EXRs present.
 
 Usage (from the repository root, with the package installed)::
 
-    python benchmarks/make_references.py                       # all scenes, 128^2, 8192 spp
-    python benchmarks/make_references.py --scenes indirect_room --spp 1024
+    python tools/make_references.py                       # all scenes, 128^2, 8192 spp
+    python tools/make_references.py --scenes indirect_room --spp 1024
 """
 from __future__ import annotations
 
@@ -71,7 +71,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def command_line(args: argparse.Namespace, name: str) -> str:
     """The command that re-renders exactly this reference (recorded in the EXR header)."""
-    parts = ["python", "benchmarks/make_references.py", "--scenes", name,
+    parts = ["python", "tools/make_references.py", "--scenes", name,
              "--resolution", str(args.resolution), "--spp", str(args.spp),
              "--pass-spp", str(args.pass_spp), "--seed", str(args.seed)]
     return shlex.join(parts)
@@ -145,7 +145,8 @@ def write_readme(out_dir: Path) -> Path:
     lines = [
         "# Path-traced references",
         "",
-        "Rendered by `benchmarks/make_references.py` with Mitsuba 3's `path` integrator",
+        "Rendered by `tools/make_references.py` (earlier `benchmarks/make_references.py`, as",
+        "the commands these files record say) with Mitsuba 3's `path` integrator",
         "(`max_depth = -1`: no depth limit, Russian roulette from depth 5), variant",
         "`llvm_ad_rgb`, box pixel filter, as the average of independent passes with",
         "different seeds. The seeds start at 1000000, away from `mi.render`'s default 0,",

@@ -1,4 +1,4 @@
-"""Small scenes built in code for the tests: each one isolates a way a photon-mapping
+"""Small scenes built in code (for the tests, benchmarks and tools): each one isolates a way a photon-mapping
 renderer can go wrong on real scenes (light through an opening, thin one-sided walls,
 textured albedo, coated and glossy materials)."""
 from __future__ import annotations
@@ -6,11 +6,21 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
-T = mi.ScalarTransform4f
+
+
+def T(*args):
+    """``mi.ScalarTransform4f`` of the variant set when called (this module is imported
+    before one may be)."""
+    return mi.ScalarTransform4f(*args)
 
 
 def _diffuse(rgb):
     return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(rgb)}}
+
+
+def _area(radiance):
+    """An area emitter of grey ``radiance``."""
+    return {"type": "area", "radiance": {"type": "rgb", "value": [radiance] * 3}}
 
 
 def _sensor(origin, target, fov=60.0, size=(48, 32), up=(0, 1, 0)):
@@ -51,12 +61,10 @@ def two_rooms(door_width=0.3, camera_in_lit_room=False, size=(48, 32), wall_bsdf
     d["part_c"] = _box_part((0, (-1 + h + 1) / 2, z0), (pt, (1 - (-1 + h)) / 2, w / 2), white)
     d["light"] = {"type": "rectangle",
                   "to_world": T().translate([-1.2, 0.999, -0.2]).rotate([1, 0, 0], 90).scale([0.2, 0.2, 1]),
-                  "bsdf": _diffuse((0, 0, 0)),
-                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [60, 60, 60]}}}
-    if camera_in_lit_room:
-        d["sensor"] = _sensor((-0.3, 0.2, 0.9), (-1.8, -0.3, -0.8), 70, size)
-    else:
-        d["sensor"] = _sensor((1.9, 0.3, 0.9), (0.0, -0.3, -0.2), 70, size)
+                  "bsdf": _diffuse((0, 0, 0)), "emitter": _area(60)}
+    view = ((-0.3, 0.2, 0.9), (-1.8, -0.3, -0.8)) if camera_in_lit_room else \
+        ((1.9, 0.3, 0.9), (0.0, -0.3, -0.2))
+    d["sensor"] = _sensor(*view, 70, size)
     return d
 
 
@@ -74,12 +82,10 @@ def thin_wall_room(camera_on_lit_side=False, thickness=0.002, size=(32, 24)):
     d["shell_right"] = _box_part((1 + t, 0, 0), (t, 0.5 + 2 * t, 0.5 + 2 * t), white)
     # The wall reaches into the shell: coincident faces would leave float cracks.
     d["wall"] = _box_part((0, 0, 0), (thickness / 2, 0.5 + t, 0.5 + t), white)
-    d["light"] = {"type": "sphere", "center": [-0.5, 0.1, 0.0], "radius": 0.08,
-                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [20, 20, 20]}}}
-    if camera_on_lit_side:
-        d["sensor"] = _sensor((-0.1, 0.2, 0.45), (-0.9, -0.3, -0.4), 75, size)
-    else:
-        d["sensor"] = _sensor((0.95, 0.2, 0.45), (0.1, -0.3, -0.4), 75, size)
+    d["light"] = {"type": "sphere", "center": [-0.5, 0.1, 0.0], "radius": 0.08, "emitter": _area(20)}
+    view = ((-0.1, 0.2, 0.45), (-0.9, -0.3, -0.4)) if camera_on_lit_side else \
+        ((0.95, 0.2, 0.45), (0.1, -0.3, -0.4))
+    d["sensor"] = _sensor(*view, 75, size)
     return d
 
 
@@ -334,3 +340,86 @@ def slot(gap=0.1, albedo=0.9, size=(32, 32)):
             "left": _box_part((-(0.5 + gap / 2), 0, 0.5), (0.5, 0.5, 0.5), white),
             "right": _box_part(((0.5 + gap / 2), 0, 0.5), (0.5, 0.5, 0.5), white),
             "sensor": _sensor((0.35, -0.3, 1.9), (-gap / 2, 0, 0.75), 12, size)}
+
+
+def rough_plastic_rooms(size=(40, 28)):
+    """:func:`two_rooms` with rough plastic walls and a principled floor: the camera
+    path's coat reads, lobe splits and inseparable (whole) reads."""
+    return two_rooms(size=size, wall_bsdf={"type": "roughplastic", "alpha": 0.3,
+                                           "diffuse_reflectance": {"type": "rgb", "value": [0.6] * 3}},
+                     floor_bsdf={"type": "principled", "base_color": {"type": "rgb", "value": [0.5] * 3},
+                                 "roughness": 0.5})
+
+
+#: Scenes of the kinds that switch on the camera path's rarer cases, for
+#: ``tools/image_digests.py`` (name: builder of a scene dict).
+DIGEST_KINDS = {
+    "lamp_room": lambda: lamp_room(size=(48, 32)),
+    "bent_normal_room": lambda: bent_normal_room(size=(32, 24)),
+    "sun_shelter_sky": lambda: sun_shelter(size=(40, 30), sky=True),
+    "window_room": lambda: window_room(size=(40, 30)),
+    "sunlit_rough_floor": lambda: sunlit_rough_floor(size=(32, 24)),
+    "rough_plastic_rooms": lambda: rough_plastic_rooms(),
+    "glossy_metal_floor_box": lambda: glossy_metal_floor_box(size=(32, 32)),
+}
+
+
+def sunlit_classroom(size=(48, 27), ground_half=110.0, sun=True):
+    """An 8 × 3 × 6 m room of solid walls with three windows in its south wall, under a
+    sun (``directional``) and a constant sky, standing on a ground square
+    ``2·ground_half`` wide (the public classroom's is 221 m): the ground outside takes
+    most of the photons and sets the scene's scale, the room is lit through its windows
+    (sun patches on the floor, sky light, their bounces)."""
+    grey, floor = _diffuse((0.6, 0.6, 0.6)), _diffuse((0.45, 0.35, 0.25))
+    t = 0.1  # wall thickness
+    d = {"type": "scene", "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 0.6, 0.8]}},
+         "ground": {"type": "rectangle", "bsdf": _diffuse((0.3, 0.35, 0.25)),
+                    "to_world": T().translate([0, -0.01, 0]).rotate([1, 0, 0], -90).scale(ground_half)},
+         "floor": _box_part((0, -t / 2, 0), (4 + t, t / 2, 3 + t), floor),
+         "ceiling": _box_part((0, 3 + t / 2, 0), (4 + t, t / 2, 3 + t), grey),
+         "north": _box_part((0, 1.5, -3 - t / 2), (4, 1.5, t / 2), grey),
+         "west": _box_part((-4 - t / 2, 1.5, 0), (t / 2, 1.5, 3), grey),
+         "east": _box_part((4 + t / 2, 1.5, 0), (t / 2, 1.5, 3), grey),
+         # South wall (z = 3): below the sills, above the lintels, and four piers.
+         "south_low": _box_part((0, 0.45, 3 + t / 2), (4, 0.45, t / 2), grey),
+         "south_high": _box_part((0, 2.6, 3 + t / 2), (4, 0.4, t / 2), grey),
+         "desk": _box_part((0.5, 0.75, 0.5), (1.2, 0.04, 0.5), floor),
+         "sensor": _sensor((3.5, 1.6, 2.6), (-2.0, 0.8, -2.0), 70, size)}
+    for i, x in enumerate((-3.4, -1.1, 1.1, 3.4)):
+        d[f"pier_{i}"] = _box_part((x, 1.55, 3 + t / 2), (0.6, 0.65, t / 2), grey)
+    if sun:
+        d["sun"] = {"type": "directional", "direction": [0.3, -0.6, -0.75],
+                    "irradiance": {"type": "rgb", "value": [4.0] * 3}}
+    return d
+
+
+def tall_stairwell(size=(24, 40)):
+    """A 3 × 8 × 3 m shaft of solid walls lit by one small, bright sphere 7 m up, with a
+    flight of steps along one wall and a glass sphere under the light (a chandelier's
+    drop): most of the shaft sees the light only by its bounces off the walls far
+    above, and the glass makes caustics below it."""
+    grey, wood = _diffuse((0.7, 0.7, 0.7)), _diffuse((0.5, 0.35, 0.2))
+    t = 0.1
+    d = {"type": "scene",
+         "floor": _box_part((0, -t / 2, 0), (1.5 + t, t / 2, 1.5 + t), wood),
+         "ceiling": _box_part((0, 8 + t / 2, 0), (1.5 + t, t / 2, 1.5 + t), grey),
+         "north": _box_part((0, 4, -1.5 - t / 2), (1.5, 4, t / 2), grey),
+         "south": _box_part((0, 4, 1.5 + t / 2), (1.5, 4, t / 2), grey),
+         "west": _box_part((-1.5 - t / 2, 4, 0), (t / 2, 4, 1.5), grey),
+         "east": _box_part((1.5 + t / 2, 4, 0), (t / 2, 4, 1.5), grey),
+         "lamp": {"type": "sphere", "center": [0.0, 7.0, 0.0], "radius": 0.04, "emitter": _area(4000.0)},
+         "drop": {"type": "sphere", "center": [0.0, 6.6, 0.0], "radius": 0.12,
+                  "bsdf": {"type": "dielectric", "int_ior": 1.5}},
+         "sensor": _sensor((1.2, 0.6, 1.2), (-0.6, 4.0, -0.6), 75, size)}
+    for i in range(12):  # steps up the north wall
+        d[f"step_{i}"] = _box_part((-1.2 + 0.22 * i, 0.18 * i + 0.09, -1.1), (0.11, 0.09, 0.4), wood)
+    return d
+
+
+#: Scenes of the public interiors' kinds (``benchmarks/public_scenes.py --kinds``).
+INTERIOR_KINDS = {
+    "door_ajar": lambda: two_rooms(door_width=0.3, size=(96, 64)),
+    "sky_through_window": lambda: window_room(size=(80, 60)),
+    "sunlit_classroom": lambda: sunlit_classroom(size=(96, 54)),
+    "tall_stairwell": lambda: tall_stairwell(size=(48, 80)),
+}

@@ -9,8 +9,11 @@ Points are projected into the scene's first sensor and drawn where the camera se
 from the project's public cache-file format (``save_cache``: an ``.npz`` of named
 arrays), not from private attributes.
 
-    python benchmarks/debug_views.py                    # Cornell box
-    python benchmarks/debug_views.py --scene indirect_room --photons 50000
+    python tools/debug_views.py                    # Cornell box
+    python tools/debug_views.py --scene indirect_room --photons 50000
+
+Writes ``benchmarks/results/debug_views_<scene>.png`` (``--out``: elsewhere); the
+documentation's copy is ``docs/img/debug_views_cornell_box.png``.
 """
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
 
 
 def cache_arrays(scene, spec: dict, spp: int = 1) -> dict:

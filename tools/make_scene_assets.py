@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Write the meshes and textures of the bundled real-scene-like scenes, from code.
 
-    python benchmarks/make_scene_assets.py      # writes scenes/assets/*
+    python tools/make_scene_assets.py      # writes scenes/assets/*
 
 The scenes (``scenes/exterior_envmap.xml``, ``scenes/interior_window.xml``) reference:
 
@@ -59,7 +59,7 @@ def planks(size=256, rows=8):
 
 
 def torus_obj(major=0.5, minor=0.18, n_major=48, n_minor=24) -> str:
-    lines = ["# torus written by benchmarks/make_scene_assets.py"]
+    lines = ["# torus written by tools/make_scene_assets.py"]
     for i in range(n_major + 1):
         u = 2 * math.pi * i / n_major
         for j in range(n_minor + 1):
