@@ -14,7 +14,7 @@ reaches the error sooner.
 
     python benchmarks/public_scenes.py                  # every scene with a reference
     python benchmarks/public_scenes.py --scenes torus sponza --spp 32
-    python benchmarks/public_scenes.py --scenes --kinds door_ajar sunlit_classroom
+    python benchmarks/public_scenes.py --scenes --kinds door_ajar sunlit_classroom --stem interior_kinds
 
 ``--kinds`` adds scenes built in code of the public interiors' kinds
 (:data:`pmic_integrator.kinds.INTERIOR_KINDS`: a room lit through a door ajar, a sky
@@ -117,8 +117,8 @@ def measure(name: str, scene, found, spp: int, log):
     return row
 
 
-def markdown(rows, spp: int, command: str) -> list[str]:
-    lines = ["# Public scenes: pmic against path at equal time", "",
+def markdown(rows, spp: int, command: str, title: str = "Public scenes") -> list[str]:
+    lines = [f"# {title}: pmic against path at equal time", "",
              f"`{command}` ({common.machine_summary()}); pmic with its default settings at {spp} spp. relMSE is "
              "less the reference's own noise; speed-up = how much sooner pmic reaches its error "
              "than path (or path + OIDN) would (~: path + OIDN's curve extrapolated).", "",
@@ -141,17 +141,20 @@ def markdown(rows, spp: int, command: str) -> list[str]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", nargs="+", default=list(ORDER))
+    parser.add_argument("--scenes", nargs="*", default=list(ORDER))
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--kinds", nargs="*", default=[],
                         help="scenes built in code (pmic_integrator.kinds.INTERIOR_KINDS)")
     parser.add_argument("--reference-seconds", type=float, default=120.0)
+    parser.add_argument("--stem", default="public_scenes",
+                        help="results file name (benchmarks/results/STEM.md and .json)")
     args = parser.parse_args(argv)
     mi.set_variant(common.VARIANT)
     rows = [row for name in args.scenes if (row := measure_public(name, args.spp, print)) is not None]
     rows += [measure_kind(name, args.spp, args.reference_seconds, print) for name in args.kinds]
-    lines = markdown(rows, args.spp, common.command(__file__, argv))
-    md = common.write_results(RESULTS, "public_scenes", rows, lines)
+    lines = markdown(rows, args.spp, common.command(__file__, argv),
+                     "Public scenes" if args.scenes else "Scenes of the public interiors' kinds")
+    md = common.write_results(RESULTS, args.stem, rows, lines)
     print(f"written {md}")
     return 0
 
