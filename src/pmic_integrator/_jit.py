@@ -153,6 +153,12 @@ def jittered(u: mi.Point2f, index: mi.UInt32, count: int) -> mi.Point2f:
     return dr.select(index < side * side, moved, u)
 
 
+def finite(value, active=True):
+    """``value`` where ``active`` and every channel is finite, else 0: a NaN or Inf from
+    one emitter, texel or sample must cost that sample only."""
+    return dr.select(mi.Bool(active) & dr.all(dr.isfinite(value)), value, 0.0)
+
+
 def only_where(mask, compute, zeros, sampler=None, label: str = "only_where"):
     """``compute()`` on the lanes of ``mask`` and ``zeros()`` on the others, as a
     symbolic conditional: the LLVM backend then skips ``compute``'s code for every

@@ -14,7 +14,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ._jit import ONE_MINUS_EPSILON
+from ._jit import ONE_MINUS_EPSILON, finite
 
 #: Outgoing directions at which :func:`diffuse_response` evaluates the lobes: the
 #: response is (1/π) ∫ f(wo) cos θ dω over the hemisphere, integrated in cos θ (uniform
@@ -111,7 +111,7 @@ def diffuse_response(bsdf, si: mi.SurfaceInteraction3f, active,
         total += value
         if with_tilt:
             moment += mi.Vector2f(wo.x, wo.y) * ((value.x + value.y + value.z) * (1.0 / 3.0))
-    response = dr.select(dr.all(dr.isfinite(total)), total, 0.0)
+    response = finite(total)
     if not with_tilt:
         return response
     # The lobe's best linear fit, f(wo) ≈ c · wo, has c = (3 / 2π) ∫ f wo dω; its

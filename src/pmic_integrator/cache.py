@@ -27,7 +27,7 @@ from . import streams
 from . import skylight
 from .gather import PAST_TARGET_LIFTS, GatherSource, gather_radiance, stratified_directions
 from . import emission
-from ._jit import (ONE_MINUS_EPSILON, concat, interleave, jittered, mean_value, opaque_float, opaque_u32,
+from ._jit import (ONE_MINUS_EPSILON, concat, finite, interleave, jittered, mean_value, opaque_float, opaque_u32,
                    rng as make_rng, scatter_min,
                    segment_blocked, shading_normal_on_side, surface_offset)
 from .hashgrid import BallGrid, PointGrid
@@ -776,7 +776,7 @@ def escaped_sky(scene: mi.Scene, direction: mi.Vector3f, distance: mi.Float,
     si = dr.zeros(mi.SurfaceInteraction3f, dr.width(distance))
     si.wi = -direction
     sky = mi.Color3f(environment.eval(si, escaped))
-    return dr.select(escaped & dr.all(dr.isfinite(sky)), sky, 0.0)
+    return finite(sky, escaped)
 
 
 def _mix_cdfs(a, b, weight: float):
@@ -907,7 +907,7 @@ def _relative_rotation(direct: mi.Color3f, gradient: mi.Vector3f) -> mi.Vector3f
     channels as the light is, never negative."""
     mean = (direct.x + direct.y + direct.z) * (1.0 / 3.0)
     relative = gradient / dr.maximum(mean, 1e-30)
-    return dr.select((mean > 0) & dr.all(dr.isfinite(relative)), relative, 0.0)
+    return finite(relative, mean > 0)
 
 
 # --------------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ import mitsuba as mi
 from .cases import GATHER_PEAK_RATIO, GATHER_ROULETTE_BELOW, lobes_of
 from .bsdfs import (diffuse_response, lobes_separable,  # noqa: F401
                     near_diffuse, non_diffuse_context, response_azimuths)
-from ._jit import concat, opaque_float, opaque_u32, segment_blocked, shading_normal_on_side
+from ._jit import concat, finite, opaque_float, opaque_u32, segment_blocked, shading_normal_on_side
 from .emission import sample_emitter_direction
 from .hashgrid import PointGrid
 from .irradiance import nearest_photon
@@ -371,7 +371,7 @@ class GatherLookup:
 
     def reflected(self, irradiance: mi.Color3f) -> mi.Color3f:
         """What the lookup adds to the walk's radiance."""
-        return _reflected(self.weight, irradiance, self.mask)
+        return finite(self.weight * irradiance, self.mask)
 
     def select(self, lanes: mi.UInt32) -> "GatherLookup":
         """The lookups of ``lanes`` (all asked for: ``mask`` true), kept as ``lanes``."""
@@ -392,13 +392,6 @@ class GatherLookup:
             dr.scatter(self.caustic, asked.caustic, slot, asked.mask)
 
 
-def _reflected(weight: mi.Color3f, irradiance: mi.Color3f, mask=True) -> mi.Color3f:
-    """``weight · irradiance`` in the lanes of ``mask``, 0 elsewhere and where it is not
-    finite."""
-    value = weight * irradiance
-    return dr.select(mi.Bool(mask) & dr.all(dr.isfinite(value)), value, 0.0)
-
-
 def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, sample_delta: bool,
                    near_distance: mi.Float):
     """One vertex of the gather rays of ``walk`` (see :func:`trace_gather_rays`): returns
@@ -417,7 +410,7 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
         # emitter sample.
         seen = walk.active & walk.count_emission
         emitted = throughput * si.emitter(scene, seen).eval(si, seen)
-        radiance += dr.select(seen & dr.all(dr.isfinite(emitted)), emitted, 0.0)
+        radiance += finite(emitted, seen)
     active = walk.active & si.is_valid()
     distance = dr.select(active & (bounce == 0), si.t, walk.distance)
     bsdf = si.bsdf(ray)
@@ -453,7 +446,7 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
         ds_near, em_near = sample_emitter_direction(scene, si, u_em, True, near)
         f_near = bsdf.eval(ctx_all, si, si.to_local(ds_near.d), near & (ds_near.pdf > 0))
         lit_near = throughput * f_near * em_near
-        radiance += dr.select(near & (ds_near.pdf > 0) & dr.all(dr.isfinite(lit_near)), lit_near, 0.0)
+        radiance += finite(lit_near, near & (ds_near.pdf > 0))
         if source.photons.irradiance_caustic is not None:
             caustic_lanes = near
         else:
@@ -469,7 +462,7 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
         if source.inseparable:
             f_whole = bsdf.eval(ctx_all, si, si.to_local(ds.d), whole & (ds.pdf > 0))
             direct = dr.select(whole, throughput * f_whole * mi.Color3f(em_weight), direct)
-        radiance += dr.select(sampled & (ds.pdf > 0) & dr.all(dr.isfinite(direct)), direct, 0.0)
+        radiance += finite(direct, sampled & (ds.pdf > 0))
     asked = GatherLookup(mask=lookup, p=si.p, n=n, weight=throughput * response, caustic=caustic_lanes)
     rest = active & ~near & ~whole & glossy
     rest &= bounce < GATHER_SPECULAR_BOUNCES

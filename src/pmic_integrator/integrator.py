@@ -230,7 +230,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         # see them half-updated). Separate integrator objects render concurrently.
         self._render_lock = threading.RLock()
         self._thread = threading.local()  #: ``inside``: this thread is in render()
-        #: (prepared scene, its caustic map's normal bins): see _deferred_caustics
+        #: (prepared scene, its caustic map's normal bins): see _caustic_bins
         self._caustic_normal_bins = (None, None)
         self._fallback_counter = None
 
@@ -328,8 +328,8 @@ class PMICIntegrator(mi.SamplingIntegrator):
 
     def _render_camera_paths(self, scene, sensor, view: PreparedScene, seed, spp, develop,
                              evaluate):
-        """Stage 4: camera rays over the film (:mod:`.camera`), ``sample()`` for each,
-        reading ``view``, splatted into the film."""
+        """Stage 4: camera rays over the film (:mod:`.camera`), a camera path for each
+        (:meth:`_sample`), reading ``view``, splatted into the film."""
         if view.index is not None and view.index.packed_body is None:
             view.index.pack()
         self._view = view

@@ -17,7 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ._jit import every_nth, opaque_float, opaque_u32, scatter_count
+from ._jit import every_nth, finite, opaque_float, opaque_u32, scatter_count
 from .hashgrid import PointGrid, PointGridPyramid, _neighbour_offset, _next_pow2, cell_of, hash_cell
 from .photons import PhotonMap
 
@@ -360,15 +360,15 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
                                      max_depth=max_depth, nodelta_too=delta)
     if delta:
         irradiance, nodelta = irradiance[0] * scale, irradiance[1] * scale
-        half_a.irradiance_nodelta = dr.select(dr.all(dr.isfinite(nodelta)), nodelta, 0.0)
+        half_a.irradiance_nodelta = finite(nodelta)
     else:
         irradiance = irradiance * scale
-    half_a.irradiance = dr.select(dr.all(dr.isfinite(irradiance)), irradiance, 0.0)
+    half_a.irradiance = finite(irradiance)
     if caustics is not None:
         caustic_map, caustic_grid, caustic_radius, delta_scale = caustics
         caustic = estimate_irradiance(caustic_map, caustic_grid, half_a.position, half_a.normal,
                                       caustic_radius, delta_scale=delta_scale)
-        half_a.irradiance_caustic = dr.select(dr.all(dr.isfinite(caustic)), caustic, 0.0)
+        half_a.irradiance_caustic = finite(caustic)
     half_a.paths_emitted = photons.paths_emitted
     dr.eval(half_a.irradiance, half_a.irradiance_nodelta, half_a.irradiance_caustic)
     return half_a

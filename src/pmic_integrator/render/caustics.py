@@ -15,13 +15,12 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .._jit import opaque_u32
+from .._jit import finite, opaque_u32
 from ..hashgrid import PointGridPyramid
 from ..irradiance import NormalBins, may_count_photons
 from .config import PathContext
 from .estimators import caustic_irradiance
 from .state import CausticRead
-from .vertex import finite
 
 #: A pixel's samples share the caustic-map estimate made at its first sample's first
 #: read where their own reads lie within this many of that estimate's kernel radius

@@ -169,13 +169,12 @@ def split_lobes(sampler, v: Vertex, bs, bsdf_weight, sampled_diffuse, split):
 
 
 def sample_continuation(ctx: PathContext, sampler, state: PathState, v: Vertex, reads: Reads,
-                        guides: Guides):
+                        guides: Guides, whole):
     """``(bs, bsdf_weight, mis_pdf, sampled_diffuse)``: the direction the path goes on
-    in, through the lobes left after the reads (all lobes where inseparable or traced),
-    its weight, the density emitter hits there are MIS-weighted with, and whether it
-    counts as the diffuse lobe's."""
+    in, through the lobes left after the reads (all lobes where ``whole``: inseparable
+    or traced), its weight, the density emitter hits there are MIS-weighted with, and
+    whether it counts as the diffuse lobe's."""
     config, si, bsdf = ctx.config, v.si, v.bsdf
-    whole = ~v.separable | reads.traced_here
     u1, u2 = sampler.next_1d(), sampler.next_2d()
     pick_light, u_light, pick_guide, u1 = _pick_strategy(config, guides, u1, v.active_next & whole)
     bs, bsdf_weight = bsdf.sample(non_diffuse_context(), si, u1, u2, v.active_next & ~whole)
@@ -216,7 +215,9 @@ def continue_path(ctx: PathContext, sampler, state: PathState, v: Vertex, reads:
     bookkeeping (``armed``, ``crossed``, ``coat_counted``), apply the roulettes, and find
     the next vertex."""
     config, si = ctx.config, v.si
-    bs, bsdf_weight, mis_pdf, sampled_diffuse = sample_continuation(ctx, sampler, state, v, reads, guides)
+    whole = ~v.separable | reads.traced_here  # all lobes sampled, not those left after reads
+    bs, bsdf_weight, mis_pdf, sampled_diffuse = sample_continuation(ctx, sampler, state, v, reads, guides,
+                                                                    whole)
     # A traced vertex sampling its diffuse lobe starts a new chain; an inseparable one
     # (no caustic photon is stored behind it) ends the old one; any other continues it
     # through a delta/glossy lobe.
@@ -228,7 +229,6 @@ def continue_path(ctx: PathContext, sampler, state: PathState, v: Vertex, reads:
     state.traced[reads.traced_here | reads.traced_whole] = state.traced + 1
     state.coat_counted = coat & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
     if config.coat_reads:
-        whole = ~v.separable | reads.traced_here
         active_next, bsdf_weight = _coat_roulette(sampler, state, active_next, whole, bs, bsdf_weight)
     state.β *= bsdf_weight
     state.η *= bs.eta

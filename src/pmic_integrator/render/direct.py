@@ -8,11 +8,11 @@ import mitsuba as mi
 from mitsuba.ad.integrators.common import mis_weight
 
 from .. import emission, skylight
-from .._jit import ONE_MINUS_EPSILON, jittered, only_where
+from .._jit import ONE_MINUS_EPSILON, finite, jittered, only_where
 from ..bsdfs import diffuse_context, non_diffuse_context
 from .config import PathContext
 from .state import PathState
-from .vertex import Guides, Reads, Vertex, finite, no_light
+from .vertex import Guides, Reads, Vertex, no_light
 
 
 def emission_met(ctx: PathContext, state: PathState, si, shown):

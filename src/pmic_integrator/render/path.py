@@ -18,13 +18,14 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .._jit import finite
 from .config import DEFERRED_READS, PathContext
 from .continuation import choose_guides, continue_path
 from .direct import direct_at_vertex, emission_met
 from .estimators import caustic_irradiance, final_gather_ray, global_irradiance, total_irradiance
 from .reads import where_read
 from .state import PathState
-from .vertex import Reads, Vertex, finite
+from .vertex import Reads, Vertex
 
 
 def _defer_caustic_read(state: PathState, v: Vertex, reads: Reads) -> None:
@@ -40,14 +41,13 @@ def _defer_caustic_read(state: PathState, v: Vertex, reads: Reads) -> None:
         slot.p[now] = v.si.p
         slot.n[now] = v.n
         slot.weight[now] = weight_here
-    for slot, now in zip(state.reads, taken):
         slot.made |= now
 
 
 def indirect_at_vertex(ctx: PathContext, sampler, state: PathState, v: Vertex, reads: Reads):
-    """``(caustic, indirect, irradiance)``: the light that bounced before reaching the
-    vertex's diffuse lobe (times the path's throughput): the caustic map's (0 where
-    deferred) and the cache's or global map's, and the irradiance read there."""
+    """``(caustic, indirect)``: the light that bounced before reaching the vertex's
+    diffuse lobe (times the path's throughput): the caustic map's (0 where deferred)
+    and the cache's or global map's (with a rough plastic's coat's share)."""
     config, β = ctx.config, state.β
     if config.defer_caustics:
         _defer_caustic_read(state, v, reads)

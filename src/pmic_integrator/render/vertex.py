@@ -21,12 +21,6 @@ def no_light(si):
     return lambda *sampler: dr.zeros(mi.Spectrum, dr.width(si.p))
 
 
-def finite(value, active=True):
-    """``value`` where ``active`` and every channel is finite, else 0: a NaN or Inf from
-    one emitter, texel or sample must cost that sample only."""
-    return dr.select(mi.Bool(active) & dr.all(dr.isfinite(value)), value, 0.0)
-
-
 @dataclass
 class Vertex:
     """The surface a camera path meets and its BSDF's structure there."""
