@@ -10,7 +10,7 @@ relMSE against the 512² reference).
     pip install mitsuba-oidn    # not a dependency: this benchmark only
     python benchmarks/denoisers.py --rounds 5
 
-Writes benchmarks/results/denoisers.md.
+Writes benchmarks/results/denoisers.{md,json}.
 """
 from __future__ import annotations
 
@@ -67,11 +67,26 @@ def main(argv=None) -> int:
         lines.append(f"| {name} | {1000 * min(times[name]):.0f} | {1000 * float(np.median(times[name])):.0f} | "
                      f"{metrics.rel_mse(outputs[name], base):.2e} | {metrics.rel_mse(outputs[name], reference):.2e} |")
     lines.append(f"| (the noisy input) | | | | {metrics.rel_mse(color, reference):.2e} |")
-    text = "\n".join(lines) + "\n"
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "denoisers.md").write_text(text)
-    print(text)
+    data = {"command": common.command(__file__, argv), "machine": common.machine(), "rounds": args.rounds,
+            "versions": {"pyoidn": _version("pyoidn"), "mitsuba-oidn": _version("mitsuba-oidn"),
+                         "oidn (mitsuba-oidn)": getattr(mitsuba_oidn, "oidn_version", lambda: None)()},
+            "bindings": {name: {"seconds": times[name], "fastest_s": min(times[name]),
+                                "median_s": float(np.median(times[name])),
+                                "rel_mse_vs_pyoidn": metrics.rel_mse(outputs[name], base),
+                                "rel_mse_vs_reference": metrics.rel_mse(outputs[name], reference)}
+                         for name in runs},
+            "noisy_rel_mse_vs_reference": metrics.rel_mse(color, reference)}
+    common.write_results(args.out, "denoisers", data, lines)
+    print("\n".join(lines))
     return 0
+
+
+def _version(package: str):
+    from importlib import metadata
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return None
 
 
 if __name__ == "__main__":

@@ -143,6 +143,10 @@ class CacheRecords:
     #: The gather's nearest hit per azimuth sector of the record's (shading-normal)
     #: frame, OBSTACLE_SECTORS per record (None: only ``obstacle`` is known).
     obstacle_sectors: mi.Float = None
+    #: Mean over the record's gather rays of their luminance squared (None: not known,
+    #: 0 where filled in): with ``irradiance``, the relative variance of one
+    #: cosine-sampled bounce at the record (:meth:`RecordIndex.bounce_variance`).
+    ray_moment: mi.Float = None
 
     @property
     def count(self) -> int:
@@ -173,6 +177,8 @@ class CacheRecords:
             return self.normal
         if name in ("guide", "sky_guide"):
             return dr.zeros(mi.Float, self.count * GUIDE_BINS)
+        if name == "ray_moment":
+            return dr.zeros(mi.Float, self.count)
         return dr.repeat(self._filled("obstacle"), OBSTACLE_SECTORS)  # obstacle_sectors
 
     def extend(self, other: "CacheRecords") -> "CacheRecords":
@@ -214,14 +220,16 @@ class CacheRecords:
             tuple(mean(a, b) for a, b in zip(self.grad_r, other.grad_r)),
             nearer(self.obstacle, other.obstacle), self.shading_normal,
             _mix_cdfs(self.guide, other.guide, w), _mix_cdfs(self.sky_guide, other.sky_guide, w),
-            nearer(self.obstacle_sectors, other.obstacle_sectors))
+            nearer(self.obstacle_sectors, other.obstacle_sectors),
+            None if self.ray_moment is None or other.ray_moment is None else mean(self.ray_moment, other.ray_moment))
 
     def nbytes(self) -> int:
         return 4 * (3 + 3 + 1 + 3 + 18 + (self.obstacle is not None)
                     + 3 * (self.shading_normal is not None)
                     + GUIDE_BINS * (self.guide is not None)
                     + GUIDE_BINS * (self.sky_guide is not None)
-                    + OBSTACLE_SECTORS * (self.obstacle_sectors is not None)) * self.count
+                    + OBSTACLE_SECTORS * (self.obstacle_sectors is not None)
+                    + (self.ray_moment is not None)) * self.count
 
 
 def block_sum(values, block: int, op: str = "sum"):
@@ -736,11 +744,13 @@ def compute_records(scene, source: GatherSource, p: mi.Point3f, n: mi.Vector3f,
     world = mi.Vector3f(frame.to_world(local))
     sky = escaped_sky(scene, world, distance, owner, rays, sky_openness)
     guide = guide_cdfs(owner, world, radiance + sky, count)
+    ray_moment = block_sum(dr.square(mi.luminance(radiance)), rays) * (1.0 / rays)
     sky_guide = guide_cdfs(owner, world, sky, count) if scene.environment() is not None else None
     records = CacheRecords(mi.Point3f(p), mi.Vector3f(n), mi.Float(radius), mi.Color3f(irradiance),
                            tuple(grad_t), tuple(grad_r), nearest, shading_n, guide,
-                           sky_guide=sky_guide, obstacle_sectors=sectors)
-    dr.eval(records.irradiance, *records.grad_t, *records.grad_r, records.obstacle, records.obstacle_sectors)
+                           sky_guide=sky_guide, obstacle_sectors=sectors, ray_moment=ray_moment)
+    dr.eval(records.irradiance, *records.grad_t, *records.grad_r, records.obstacle, records.obstacle_sectors,
+            records.ray_moment)
     return records
 
 
@@ -954,6 +964,8 @@ class RecordIndex:
     #: (Derived: not written to cache files.)
     packed_head: mi.Float = field(default=None, metadata={"derived": True})
     packed_body: mi.Float = field(default=None, metadata={"derived": True})
+    #: :meth:`bounce_variance`, once computed (derived from the records).
+    spread: mi.Float = field(default=None, metadata={"derived": True})
 
     @staticmethod
     def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0,
@@ -1152,6 +1164,24 @@ class RecordIndex:
     def light_direct(self) -> mi.Color3f:
         """All direct irradiance at each record (``direct_all``, else ``direct``)."""
         return self.direct if self.direct_all is None else self.direct_all
+
+    def bounce_variance(self) -> mi.Float:
+        """Per record, the relative variance of one cosine-sampled bounce's estimate of
+        its bounced irradiance, π L: mean(L²) / mean(L)² - 1 over its gather's rays
+        (0 where not known or no light was found). Large where the light comes through
+        a small part of the hemisphere (a door ajar, a lit patch far off): there one
+        traced bounce finds it now and then (what
+        :func:`pmic_integrator.render.reads.first_read_pays` weighs). Computed once."""
+        if self.spread is None:
+            r = self.records
+            if r.ray_moment is None:
+                self.spread = dr.zeros(mi.Float, r.count)
+            else:
+                mean_l = mi.luminance(r.irradiance) * (1.0 / math.pi)
+                known = (mean_l > 0) & (r.ray_moment > 0)
+                self.spread = dr.select(known, r.ray_moment / dr.maximum(dr.square(mean_l), 1e-30) - 1.0, 0.0)
+                dr.eval(self.spread)
+        return self.spread
 
     @property
     def guides(self) -> bool:

@@ -82,7 +82,9 @@ FORMAT = "pmic-cache"
 #: 29: the scene's fingerprint covers its shapes and emitters only, one digest per object
 #:     (fingerprint.SceneFingerprint), and settings are stored by name: a file serves
 #:     every camera of its scene.
-VERSION = 29
+#: 30: records keep their gather's mean squared ray luminance (CacheRecords.ray_moment,
+#:     the adaptive estimator's test of a record's own noise).
+VERSION = 30
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

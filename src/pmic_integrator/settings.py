@@ -15,7 +15,7 @@ from dataclasses import dataclass, fields
 
 METHODS = ("pmic", "photon_map", "irradiance_cache")
 #: How ``pmic`` uses its cache at a camera path's diffuse vertices.
-ESTIMATORS = ("final_gather", "first_hit")
+ESTIMATORS = ("final_gather", "first_hit", "adaptive")
 #: Extra images (AOVs) ``pmic`` can output, in this channel order.
 AOVS = {
     "albedo": ("albedo.R", "albedo.G", "albedo.B"),
@@ -185,7 +185,7 @@ class Settings:
     def final_gather_camera(self) -> bool:
         """Camera paths path-trace their first diffuse bounce and read the cache one
         bounce later (method pmic, estimator final_gather)."""
-        return self.method == "pmic" and self.estimator == "final_gather"
+        return self.method == "pmic" and self.estimator in ("final_gather", "adaptive")
 
     @property
     def bounded(self) -> bool:
@@ -221,6 +221,8 @@ class Settings:
         values = {name: getattr(self, name) for name in self.CACHE_PARAMETERS}
         if self.method != "pmic":
             values["estimator"] = "(not used)"
+        elif self.estimator == "adaptive":  # (the final gather's cache)
+            values["estimator"] = "final_gather"
         return tuple(values.items())
 
 

@@ -62,6 +62,9 @@ class PathConfig:
     #: one bounce later (Settings.final_gather_camera).
     gather_first: bool
     records_hold_caustics: bool
+    #: The adaptive estimator: the first diffuse vertex reads the records' bounced light
+    #: where they say a traced bounce would be noisy (reads.first_read), else is traced.
+    first_reads: bool
     #: BSDF sampling of the diffuse lobe for direct light, combined with emitter
     #: sampling by MIS: emitter sampling alone is noisy for large emitters (skies).
     diffuse_mis: bool
@@ -116,6 +119,8 @@ class PathConfig:
             prepared.global_map.count > 0,
             reads_cache=settings.method != "photon_map", gather_first=gather_first,
             records_hold_caustics=index is not None and index.holds_caustics,
+            first_reads=gather_first and settings.estimator == "adaptive" and not settings.bounded and
+            index is not None and index.guides,
             diffuse_mis=info.has_infinite_emitter, delta_lights=info.has_delta_emitter,
             coat_rays=info.has_delta_coat,
             lobes_split=gather_first and has_caustic_map and info.has_glossy_coat,

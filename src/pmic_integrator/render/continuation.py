@@ -48,16 +48,18 @@ def choose_guides(ctx: PathContext, v: Vertex, reads: Reads) -> Guides:
     config, index, si, n = ctx.config, ctx.view.index, v.si, v.n
     lanes = dr.width(si.p)
     traced_on = reads.traced_here & v.active_next  #: traced, and the path goes on
+    # (a first read's sky samples follow the record too)
+    guided = (reads.traced_here | reads.first_read) & v.active_next
     record, fraction = mi.UInt32(0), mi.Float(0.0)
     if config.guiding:
         record, bounced_share = only_where(
-            traced_on, lambda: index.guide_record(si.p, n, traced_on),
+            guided, lambda: index.guide_record(si.p, n, guided),
             lambda: (dr.zeros(mi.UInt32, lanes), dr.zeros(mi.Float, lanes)), label="guide_record")
         fraction = GUIDE_FRACTION * bounced_share
     sky_fraction = mi.Float(0.0)
     if config.sky_guided:
-        sees = index.sees_sky(record, reads.traced_here & (fraction > 0))
-        sky_fraction = dr.select(reads.traced_here & v.active_next & (fraction > 0) & sees,
+        sees = index.sees_sky(record, guided & (fraction > 0))
+        sky_fraction = dr.select(guided & (fraction > 0) & sees,
                                  SKY_EMITTER_FRACTION, 0.0)
     light_total, light_fraction = mi.Float(0.0), mi.Float(0.0)
     if config.lit:
@@ -226,7 +228,7 @@ def continue_path(ctx: PathContext, sampler, state: PathState, v: Vertex, reads:
     ended = active_next & v.lobes.diffuse & ~v.separable
     state.crossed = dr.select(restart | ended, False, state.crossed | state.armed)
     state.armed = dr.select(restart, reads.read_caustic, state.armed & ~ended)
-    state.traced[reads.traced_here | reads.traced_whole] = state.traced + 1
+    state.traced[reads.traced_here | reads.traced_whole | reads.first_read] = state.traced + 1
     state.coat_counted = coat & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
     if config.coat_reads:
         active_next, bsdf_weight = _coat_roulette(sampler, state, active_next, whole, bs, bsdf_weight)

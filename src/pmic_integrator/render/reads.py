@@ -12,6 +12,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .._jit import only_where
 from ..bsdfs import (diffuse_response, near_diffuse, non_diffuse_context,
                      peak_within, response_azimuths, tilted_normal)
 from ..cases import CAMERA_PEAK_RATIO
@@ -58,6 +59,39 @@ def _coat_read(v: Vertex, trust, covered, response):
                              CAMERA_PEAK_RATIO)
     return coat_read, coat_response
 
+#: The adaptive estimator reads the records at a camera path's first diffuse vertex
+#: only where the records resolved the geometry and the photons around them: their
+#: reach (a·R, interpolated) spans at least this many photon lookup radii. Records at
+#: their smallest radius (a reach of one lookup radius: corners, contacts, and every
+#: record where photons are sparse, as in a room on a large sunlit ground) are traced
+#: through as the final gather does. Measured in docs/tuning.md ("First reads").
+FIRST_READ_MIN_REACH = 3.0
+#: ...and where the record that guides there gathered its light evenly enough that its
+#: own estimate is smooth: the relative variance of one gather ray
+#: (:meth:`~pmic_integrator.cache.RecordIndex.bounce_variance`) at most this. Records
+#: lit by a small bright source (a lamp's shade seen from the wall) each see it with a
+#: few of their rays: read at the first hit they were record-sized blotches (the lamp
+#: room: relMSE after OIDN 1.1e-1 without this test, 2.1e-2 with it).
+FIRST_READ_MAX_VARIANCE = 8.0
+
+
+def first_read_pays(ctx: PathContext, v: Vertex, active, radius):
+    """The lanes of ``active`` (first diffuse vertices that records reach, ``radius``
+    their weighted mean R) that read the records' bounced light rather than trace a
+    bounce: where the records' reach spans FIRST_READ_MIN_REACH photon lookup radii,
+    and the record that guides there found bounced light (where it found none, the
+    photons may have missed the place) evenly enough (FIRST_READ_MAX_VARIANCE)."""
+    index = ctx.view.index
+    active = mi.Bool(active) & (radius * index.max_error >= FIRST_READ_MIN_REACH * ctx.untrusted_radius)
+    lanes = dr.width(radius)
+    record, bounced_share = only_where(
+        active, lambda: index.guide_record(v.si.p, v.n, active),
+        lambda: (dr.zeros(mi.UInt32, lanes), dr.zeros(mi.Float, lanes)), label="first_read_record")
+    active &= bounced_share > 0
+    variance = dr.gather(mi.Float, index.bounce_variance(), record, active)
+    return active & (variance <= FIRST_READ_MAX_VARIANCE)
+
+
 def where_read(ctx: PathContext, state: PathState, v: Vertex) -> Reads:
     """What vertex ``v`` of ``state``'s paths reads, and where it is traced instead."""
     config = ctx.config
@@ -79,20 +113,26 @@ def where_read(ctx: PathContext, state: PathState, v: Vertex) -> Reads:
                                           azimuths=response_azimuths(config.leaning))
         read_n = tilted_normal(v.shading_n, tilt)
     records_here = mi.Bool(False)
+    first_read = mi.Bool(False)
     if config.gather_first:
         probe = (cache_ok | inseparable) & (traced > 0)
         if config.bounded:
             probe &= depth == config.read_depth  # (deeper: traced on, see records_read_depth)
+        first_probe = cache_ok & (traced == 0) if config.first_reads else mi.Bool(False)
         cached_direct = mi.Color3f(0.0)
-        if config.coat_reads:
-            cached, covered, radius, cached_direct = cache_lookup(ctx, v.si.p, v.n, read_n, probe,
+        if config.coat_reads or config.first_reads:
+            cached, covered, radius, cached_direct = cache_lookup(ctx, v.si.p, v.n, read_n, probe | first_probe,
                                                                   with_direct=True)
         else:
             cached, covered, radius = cache_lookup(ctx, v.si.p, v.n, read_n, probe)
         trusted_radius = dr.select(covered, radius, ctx.untrusted_radius)
         trust = probe & ((v.si.t >= TRUST_RECORD_RADII * trusted_radius) |
                          (traced >= MAX_TRACED_BOUNCES))
-        traced_here = v.lit_diffuse & ~trust
+        if config.first_reads:
+            first_read = first_read_pays(ctx, v, first_probe & covered, radius)
+            # (its light from the lights is sampled here: the records' bounced light only)
+            cached = dr.select(first_read, dr.maximum(cached - cached_direct, 0.0), cached)
+        traced_here = v.lit_diffuse & ~trust & ~first_read
         # Where it is not trusted it is traced whole: a traced diffuse vertex.
         trusted_whole = inseparable & trust
         traced_whole &= ~trusted_whole
@@ -106,6 +146,8 @@ def where_read(ctx: PathContext, state: PathState, v: Vertex) -> Reads:
         traced_whole = mi.Bool(False)
         trusted_whole = mi.Bool(False)
         cached_direct = mi.Color3f(0.0)
+    from_records = trust & mi.Bool(config.gather_first)  #: all its light from the records
+    trust |= first_read
 
     # ---- Light that bounced before reaching the diffuse lobe: where read ----
     read_caustic = (trust | traced_here) & mi.Bool(config.has_caustic_map) & \
@@ -113,7 +155,7 @@ def where_read(ctx: PathContext, state: PathState, v: Vertex) -> Reads:
     if config.gather_first:
         read_caustic &= ~(trust & ~covered)  # the photon's irradiance has them
         if config.records_hold_caustics:
-            read_caustic &= ~trust  # and so do the records
+            read_caustic &= ~from_records  # and so do the records
     if config.leaning:
         response = dr.select(trust | read_caustic, response, 0.0)
     else:
@@ -122,10 +164,10 @@ def where_read(ctx: PathContext, state: PathState, v: Vertex) -> Reads:
     coat_read = mi.Bool(False)
     coat_response = mi.Color3f(0.0)
     if config.coat_reads:
-        coat_read, coat_response = _coat_read(v, trust, covered, response)
+        coat_read, coat_response = _coat_read(v, from_records, covered, response)
         trusted_whole |= coat_read
     return Reads(trust=trust, traced_here=traced_here, traced_whole=traced_whole,
                  trusted_whole=trusted_whole, cached=cached, covered=covered,
                  cached_direct=cached_direct, records_here=records_here,
                  read_caustic=read_caustic, response=response, coat_read=coat_read,
-                 coat_response=coat_response, from_records=trust & mi.Bool(config.gather_first))
+                 coat_response=coat_response, from_records=from_records, first_read=first_read)

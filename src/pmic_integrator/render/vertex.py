@@ -71,6 +71,9 @@ class Reads:
     #: Final gather: a trusted vertex reads all its light from the cache, direct light
     #: included: only its other lobes need emitter samples.
     from_records: mi.Bool
+    #: Adaptive estimator: a first diffuse vertex that reads the records' bounced light
+    #: (part of ``trust``, not ``from_records``: its direct light is sampled).
+    first_read: mi.Bool
 
 
 @dataclass

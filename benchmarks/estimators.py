@@ -1,0 +1,102 @@
+"""pmic's estimators side by side at equal spp, raw and through OIDN, on the public
+scenes and on the interior kinds built in code.
+
+For each scene and estimator: two renders (render seeds 0 and 1, after a warm-up that
+compiles the kernels), each scored against the reference (relMSE less the reference's
+own noise, raw and after OIDN with albedo/normal guides; mean luminance over the
+reference's); the table gives the means and the mean render time. The estimators
+share one cache where they can (``adaptive`` and ``final_gather``), so the times
+compare their camera passes.
+
+    python benchmarks/estimators.py                                    # every scene
+    python benchmarks/estimators.py --scenes door_ajar sponza --estimators final_gather adaptive
+
+References: the public scenes' (``public_scenes.reference_of``), the kinds' kept path
+renders (:func:`pmic_integrator.reference.cached_reference`, ``--reference-seconds``).
+Writes benchmarks/results/estimators.md and .json.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import pmic_integrator  # noqa: F401  (LLVM set-up before Mitsuba)
+import mitsuba as mi
+import numpy as np
+
+import common
+from common import RESULTS
+from public_scenes import ORDER, reference_of
+
+KINDS = ("door_ajar", "sky_through_window", "sunlit_classroom", "tall_stairwell")
+
+
+def load(name: str, reference_seconds: float):
+    """(scene, reference image, the reference's own relMSE noise)."""
+    from pmic_integrator import kinds, reference
+
+    if name in kinds.INTERIOR_KINDS:
+        scene = mi.load_dict(kinds.INTERIOR_KINDS[name]())
+        ref = reference.cached_reference(scene, seconds=reference_seconds)
+        return scene, ref.image, ref.noise
+    found = reference_of(name)
+    if found is None:
+        raise SystemExit(f"{name}: no reference (benchmarks/public_references.py makes them)")
+    return common.load_public(name), found[0], found[1]
+
+
+def measure(scene, ref, noise, estimator: str, spp: int) -> dict:
+    from pmic_integrator import compare, metrics
+
+    integrator = mi.load_dict(compare.with_guides({"type": "pmic", "estimator": estimator}))
+    mi.render(scene, integrator=integrator, spp=1, seed=5)  # (compiles; builds the cache)
+    rows = []
+    for seed in (0, 1):
+        start = time.perf_counter()
+        image = np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed))
+        seconds = time.perf_counter() - start
+        denoised = compare.denoise_guided(image)
+        rows.append((metrics.rel_mse(image[..., :3], ref) - noise, metrics.rel_mse(denoised, ref) - noise,
+                     metrics.luminance_ratio(image[..., :3], ref), seconds,
+                     metrics.finite(image) and metrics.finite(denoised)))
+    raw, oidn, lum, seconds, finite = zip(*rows)
+    return {"rel_mse": float(np.mean(raw)), "rel_mse_oidn": float(np.mean(oidn)),
+            "luminance": float(np.mean(lum)), "seconds": float(np.mean(seconds)), "finite": all(finite)}
+
+
+def markdown(rows, estimators, spp: int, command: str) -> list[str]:
+    lines = ["# pmic's estimators at equal spp", "",
+             f"`{command}` ({common.machine_summary()}); {spp} spp, means over render seeds 0 and 1; "
+             "relMSE less the reference's own noise; OIDN with albedo/normal guides.", "",
+             "| scene | " + " | ".join(f"{e} relMSE / +OIDN / luminance / s" for e in estimators) + " |",
+             "|---|" + "---|" * len(estimators)]
+    for row in rows:
+        cells = [f"{r['rel_mse']:.2e} / {r['rel_mse_oidn']:.2e} / {r['luminance']:.3f} / {r['seconds']:.2f}"
+                 for r in (row[e] for e in estimators)]
+        lines.append(f"| {row['scene']} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="*", default=list(KINDS) + list(ORDER))
+    parser.add_argument("--estimators", nargs="+", default=["final_gather", "adaptive"])
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--reference-seconds", type=float, default=60.0)
+    args = parser.parse_args(argv)
+    mi.set_variant(common.VARIANT)
+    rows = []
+    for name in args.scenes:
+        scene, ref, noise = load(name, args.reference_seconds)
+        row = {"scene": name, "reference_noise": noise}
+        for estimator in args.estimators:
+            row[estimator] = measure(scene, ref, noise, estimator, args.spp)
+            print(f"{name} {estimator}: {row[estimator]}", flush=True)
+        rows.append(row)
+    lines = markdown(rows, args.estimators, args.spp, common.command(__file__, argv))
+    print(f"written {common.write_results(RESULTS, 'estimators', rows, lines)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
