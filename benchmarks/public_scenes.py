@@ -15,6 +15,7 @@ reaches the error sooner.
     python benchmarks/public_scenes.py                  # every scene with a reference
     python benchmarks/public_scenes.py --scenes torus sponza --spp 32
     python benchmarks/public_scenes.py --scenes --kinds door_ajar sunlit_classroom --stem interior_kinds
+    python benchmarks/public_scenes.py --scenes --kinds door_ajar --kind-scale 3 --stem door_ajar_288
 
 ``--kinds`` adds scenes built in code of the public interiors' kinds
 (:data:`pmic_integrator.kinds.INTERIOR_KINDS`: a room lit through a door ajar, a sky
@@ -75,26 +76,26 @@ def time_to_error(points, target):
     return math.exp(t1 + (goal - e1) / slope), True
 
 
-def measure_public(name: str, spp: int, log):
+def measure_public(name: str, spp: int, log, spec=None):
     found = reference_of(name)
     if found is None:
         return None
-    return measure(name, common.load_public(name), found, spp, log)
+    return measure(name, common.load_public(name), found, spp, log, spec)
 
 
-def measure_kind(name: str, spp: int, reference_seconds: float, log):
+def measure_kind(name: str, spp: int, reference_seconds: float, log, scale: int = 1, spec=None):
     from pmic_integrator import kinds, reference
 
-    scene = mi.load_dict(kinds.INTERIOR_KINDS[name]())
+    scene = mi.load_dict(kinds.INTERIOR_KINDS[name](scale))
     ref = reference.cached_reference(scene, seconds=reference_seconds)
-    return measure(name, scene, (ref.image, ref.noise, f"kept ({ref.spp} spp)"), spp, log)
+    return measure(name, scene, (ref.image, ref.noise, f"kept ({ref.spp} spp)"), spp, log, spec)
 
 
-def measure(name: str, scene, found, spp: int, log):
+def measure(name: str, scene, found, spp: int, log, spec=None):
     from pmic_integrator import compare, metrics
 
     ref, noise, origin = found
-    results = compare.compare(scene, {}, spp, ref, denoised=True, log=log)
+    results = compare.compare(scene, dict(spec or {}), spp, ref, denoised=True, log=log)
     pmic, path, pmic_dn, path_dn = results
     row = {"scene": name, "reference": origin, "reference_noise": noise}
     for r in results:
@@ -119,7 +120,7 @@ def measure(name: str, scene, found, spp: int, log):
 
 def markdown(rows, spp: int, command: str, title: str = "Public scenes") -> list[str]:
     lines = [f"# {title}: pmic against path at equal time", "",
-             f"`{command}` ({common.machine_summary()}); pmic with its default settings at {spp} spp. relMSE is "
+             f"`{command}` ({common.machine_summary()}); pmic at {spp} spp, its default settings but for the command's. relMSE is "
              "less the reference's own noise; speed-up = how much sooner pmic reaches its error "
              "than path (or path + OIDN) would (~: path + OIDN's curve extrapolated).", "",
              "| scene | reference (noise) | pmic luminance | pmic relMSE | path relMSE | speed-up vs path | "
@@ -146,12 +147,18 @@ def main(argv=None) -> int:
     parser.add_argument("--kinds", nargs="*", default=[],
                         help="scenes built in code (pmic_integrator.kinds.INTERIOR_KINDS)")
     parser.add_argument("--reference-seconds", type=float, default=120.0)
+    parser.add_argument("--kind-scale", type=int, default=1,
+                        help="the kinds' images this many times wider and taller (their pre-passes "
+                             "weigh less against the render)")
     parser.add_argument("--stem", default="public_scenes",
                         help="results file name (benchmarks/results/STEM.md and .json)")
+    parser.add_argument("--estimator", default=None, help="pmic's estimator (default: pmic's default)")
     args = parser.parse_args(argv)
     mi.set_variant(common.VARIANT)
-    rows = [row for name in args.scenes if (row := measure_public(name, args.spp, print)) is not None]
-    rows += [measure_kind(name, args.spp, args.reference_seconds, print) for name in args.kinds]
+    spec = {"estimator": args.estimator} if args.estimator else {}
+    rows = [row for name in args.scenes if (row := measure_public(name, args.spp, print, spec)) is not None]
+    rows += [measure_kind(name, args.spp, args.reference_seconds, print, args.kind_scale, spec)
+             for name in args.kinds]
     lines = markdown(rows, args.spp, common.command(__file__, argv),
                      "Public scenes" if args.scenes else "Scenes of the public interiors' kinds")
     md = common.write_results(RESULTS, args.stem, rows, lines)

@@ -418,8 +418,8 @@ def tall_stairwell(size=(24, 40)):
 
 #: Scenes of the public interiors' kinds (``benchmarks/public_scenes.py --kinds``).
 INTERIOR_KINDS = {
-    "door_ajar": lambda: two_rooms(door_width=0.3, size=(96, 64)),
-    "sky_through_window": lambda: window_room(size=(80, 60)),
-    "sunlit_classroom": lambda: sunlit_classroom(size=(96, 54)),
-    "tall_stairwell": lambda: tall_stairwell(size=(48, 80)),
+    "door_ajar": lambda scale=1: two_rooms(door_width=0.3, size=(96 * scale, 64 * scale)),
+    "sky_through_window": lambda scale=1: window_room(size=(80 * scale, 60 * scale)),
+    "sunlit_classroom": lambda scale=1: sunlit_classroom(size=(96 * scale, 54 * scale)),
+    "tall_stairwell": lambda scale=1: tall_stairwell(size=(48 * scale, 80 * scale)),
 }

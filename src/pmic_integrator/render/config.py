@@ -40,6 +40,17 @@ def defers_caustics(settings: Settings, prepared: PreparedScene) -> bool:
         MAX_TRACED_BOUNCES <= DEFERRED_READS
 
 
+def first_reads(settings: Settings, prepared: PreparedScene) -> bool:
+    """Whether the adaptive estimator may read records at first vertices in this render
+    (records that guide, no depth bound, and some record that qualifies)."""
+    from .reads import any_first_reads  # (reads builds on this module)
+
+    index = prepared.index
+    return settings.final_gather_camera and settings.estimator == "adaptive" and \
+        not settings.bounded and index is not None and index.guides and \
+        any_first_reads(index, prepared.global_radius)
+
+
 @dataclass(frozen=True)
 class PathConfig:
     """What a render's camera paths do, the same for every lane."""
@@ -119,8 +130,7 @@ class PathConfig:
             prepared.global_map.count > 0,
             reads_cache=settings.method != "photon_map", gather_first=gather_first,
             records_hold_caustics=index is not None and index.holds_caustics,
-            first_reads=gather_first and settings.estimator == "adaptive" and not settings.bounded and
-            index is not None and index.guides,
+            first_reads=first_reads(settings, prepared),
             diffuse_mis=info.has_infinite_emitter, delta_lights=info.has_delta_emitter,
             coat_rays=info.has_delta_coat,
             lobes_split=gather_first and has_caustic_map and info.has_glossy_coat,
