@@ -115,7 +115,13 @@ def emitter_order(scene: mi.Scene) -> list[int]:
     """Indices into ``scene.emitters()`` sorted by what each emitter is (id, kind,
     parameters, the shape of an area light), not by the order Mitsuba loaded them in:
     that order changes from one process to the next (seen: the lamp room's two lamps
-    swapped in a quarter of the loads), and with it which light a random number picks."""
+    swapped in a quarter of the loads), and with it which light a random number picks.
+    (The key reads each area light's bounding box back from the device: with one
+    emitter there is nothing to sort, and a render of the Cornell box made 248 such
+    reads, 112 of them in its camera pass: ``benchmarks/kernel_report.py``.)"""
+    if len(scene.emitters()) < 2:
+        return list(range(len(scene.emitters())))
+
     def key(i):
         emitter = scene.emitters()[i]
         shape = emitter.get_shape()
