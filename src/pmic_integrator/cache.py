@@ -965,7 +965,7 @@ class RecordIndex:
     packed_head: mi.Float = field(default=None, metadata={"derived": True})
     packed_body: mi.Float = field(default=None, metadata={"derived": True})
     #: :meth:`bounce_variance`, once computed (derived from the records).
-    spread: mi.Float = field(default=None, metadata={"derived": True})
+    ray_variance: mi.Float = field(default=None, metadata={"derived": True})
 
     @staticmethod
     def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0,
@@ -1169,19 +1169,20 @@ class RecordIndex:
         """Per record, the relative variance of one cosine-sampled bounce's estimate of
         its bounced irradiance, π L: mean(L²) / mean(L)² - 1 over its gather's rays
         (0 where not known or no light was found). Large where the light comes through
-        a small part of the hemisphere (a door ajar, a lit patch far off): there one
-        traced bounce finds it now and then (what
-        :func:`pmic_integrator.render.reads.first_read_pays` weighs). Computed once."""
-        if self.spread is None:
+        a small part of the hemisphere (a lamp's shade seen from a wall): the record's
+        own gather saw it with a few rays, and its irradiance is noisy
+        (:func:`pmic_integrator.render.reads.first_read_pays` reads at the first hit only
+        records where this is small). Computed once."""
+        if self.ray_variance is None:
             r = self.records
             if r.ray_moment is None:
-                self.spread = dr.zeros(mi.Float, r.count)
+                self.ray_variance = dr.zeros(mi.Float, r.count)
             else:
                 mean_l = mi.luminance(r.irradiance) * (1.0 / math.pi)
                 known = (mean_l > 0) & (r.ray_moment > 0)
-                self.spread = dr.select(known, r.ray_moment / dr.maximum(dr.square(mean_l), 1e-30) - 1.0, 0.0)
-                dr.eval(self.spread)
-        return self.spread
+                self.ray_variance = dr.select(known, r.ray_moment / dr.maximum(dr.square(mean_l), 1e-30) - 1.0, 0.0)
+                dr.eval(self.ray_variance)
+        return self.ray_variance
 
     @property
     def guides(self) -> bool:
