@@ -26,19 +26,18 @@ import numpy as np
 
 import common
 from common import RESULTS
-from public_scenes import ORDER, reference_of
+from public_scenes import ORDER, load_kind, reference_of
 
 KINDS = ("door_ajar", "sky_through_window", "sunlit_classroom", "tall_stairwell")
 
 
 def load(name: str, reference_seconds: float):
     """(scene, reference image, the reference's own relMSE noise)."""
-    from pmic_integrator import kinds, reference
+    from pmic_integrator import kinds
 
     if name in kinds.INTERIOR_KINDS:
-        scene = mi.load_dict(kinds.INTERIOR_KINDS[name]())
-        ref = reference.cached_reference(scene, seconds=reference_seconds)
-        return scene, ref.image, ref.noise
+        scene, (image, noise, _) = load_kind(name, reference_seconds)
+        return scene, image, noise
     found = reference_of(name)
     if found is None:
         raise SystemExit(f"{name}: no reference (benchmarks/public_references.py makes them)")

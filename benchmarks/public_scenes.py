@@ -83,12 +83,19 @@ def measure_public(name: str, spp: int, log, spec=None):
     return measure(name, common.load_public(name), found, spp, log, spec)
 
 
-def measure_kind(name: str, spp: int, reference_seconds: float, log, scale: int = 1, spec=None):
+def load_kind(name: str, reference_seconds: float, scale: int = 1):
+    """(scene, (reference image, its own noise relMSE, where it came from)) of the kind
+    ``name`` (its reference rendered by path for ``reference_seconds`` and kept)."""
     from pmic_integrator import kinds, reference
 
     scene = mi.load_dict(kinds.INTERIOR_KINDS[name](scale))
     ref = reference.cached_reference(scene, seconds=reference_seconds)
-    return measure(name, scene, (ref.image, ref.noise, f"kept ({ref.spp} spp)"), spp, log, spec)
+    return scene, (ref.image, ref.noise, f"kept ({ref.spp} spp)")
+
+
+def measure_kind(name: str, spp: int, reference_seconds: float, log, scale: int = 1, spec=None):
+    scene, found = load_kind(name, reference_seconds, scale)
+    return measure(name, scene, found, spp, log, spec)
 
 
 def measure(name: str, scene, found, spp: int, log, spec=None):

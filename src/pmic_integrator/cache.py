@@ -1168,20 +1168,19 @@ class RecordIndex:
     def bounce_variance(self) -> mi.Float:
         """Per record, the relative variance of one cosine-sampled bounce's estimate of
         its bounced irradiance, π L: mean(L²) / mean(L)² - 1 over its gather's rays
-        (0 where not known or no light was found). Large where the light comes through
-        a small part of the hemisphere (a lamp's shade seen from a wall): the record's
-        own gather saw it with a few rays, and its irradiance is noisy
+        (0 where no light was found; +inf where the rays' moment is not known: such a
+        record is never taken for smooth). Large where the light comes through a small
+        part of the hemisphere (a lamp's shade seen from a wall): the record's own
+        gather saw it with a few rays, and its irradiance is noisy
         (:func:`pmic_integrator.render.reads.first_read_pays` reads at the first hit only
         records where this is small). Computed once."""
         if self.ray_variance is None:
             r = self.records
-            if r.ray_moment is None:
-                self.ray_variance = dr.zeros(mi.Float, r.count)
-            else:
-                mean_l = mi.luminance(r.irradiance) * (1.0 / math.pi)
-                known = (mean_l > 0) & (r.ray_moment > 0)
-                self.ray_variance = dr.select(known, r.ray_moment / dr.maximum(dr.square(mean_l), 1e-30) - 1.0, 0.0)
-                dr.eval(self.ray_variance)
+            mean_l = mi.luminance(r.irradiance) * (1.0 / math.pi)
+            moment = r._filled("ray_moment")
+            variance = dr.select(moment > 0, moment / dr.maximum(dr.square(mean_l), 1e-30) - 1.0, dr.inf)
+            self.ray_variance = dr.select(mean_l > 0, variance, 0.0)
+            dr.eval(self.ray_variance)
         return self.ray_variance
 
     @property

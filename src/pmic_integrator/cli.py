@@ -151,10 +151,12 @@ def _print_results(results, spec, pmic, path, denoised):
         if pmic.stats.get("time_render", pmic.seconds) < 0.5 * pmic.seconds:
             hints.append("pmic's fixed cost, photons and cache, is most of this run: try more "
                          "--spp or a larger image")
-        if spec.get("estimator", "final_gather") in ("adaptive", "final_gather"):
-            hints.append("its estimator traces the first bounce where the cache cannot be "
-                         "trusted and leaves that noise for a denoiser: compare denoised with "
-                         "--denoise, or try --set estimator=first_hit")
+        estimator = spec.get("estimator", "final_gather")
+        if estimator in ("adaptive", "final_gather"):
+            traced = "where the cache cannot be trusted" if estimator == "adaptive" else "always"
+            hints.append(f"its estimator ({estimator}) traces the first diffuse bounce {traced} and "
+                         "leaves that noise for a denoiser: compare denoised with --denoise, or "
+                         "try --set estimator=first_hit")
         hint = "; ".join(hints) or "see docs/tuning.md"
         print(f"\nAt equal time, path's relMSE is {1 / ratio:.1f}x lower than pmic's ({hint}).")
     stats = pmic.stats

@@ -62,9 +62,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
            reads the records' bounced light (its direct light still sampled) where
            the records resolved the photons around them (their reach spans three
            photon lookup radii, and a record's gather was even): far less raw noise
-           in rooms lit through a door, but an error a denoiser does not remove. ``"first_hit"``: the paper's interpolation at the
-           first diffuse vertex (less noise at few samples, but record-sized blotches
-           that stay). With any of them, the cache is view independent: a function of
+           in rooms lit through a door, but an error a denoiser does not remove.
+           ``"first_hit"``: the paper's interpolation at the first diffuse vertex
+           (less noise at few samples, but record-sized blotches that stay). With any of them, the cache is view independent: a function of
            the scene, the settings and ``seed`` only.
        * - ``aovs``
          - string

@@ -74,7 +74,8 @@ class PathConfig:
     gather_first: bool
     records_hold_caustics: bool
     #: The adaptive estimator: the first diffuse vertex reads the records' bounced light
-    #: where they say a traced bounce would be noisy (reads.first_read), else is traced.
+    #: where they resolved the photons and gathered evenly (reads.first_read_pays),
+    #: else is traced; off where no record qualifies (:func:`first_reads`).
     first_reads: bool
     #: BSDF sampling of the diffuse lobe for direct light, combined with emitter
     #: sampling by MIS: emitter sampling alone is noisy for large emitters (skies).

@@ -75,15 +75,20 @@ FIRST_READ_MIN_REACH = 3.0
 FIRST_READ_MAX_VARIANCE = 8.0
 
 
+def _reach_spans_photons(radius, index, lookup_radius):
+    """Records of radius ``radius`` reach FIRST_READ_MIN_REACH photon lookup radii."""
+    return radius * index.max_error >= FIRST_READ_MIN_REACH * lookup_radius
+
+
 def any_first_reads(index, lookup_radius: float) -> bool:
     """Whether any record of ``index`` could pass :func:`first_read_pays` (an
     interpolated radius is at most the largest record's): where none can, the adaptive
     estimator is the final gather and skips the first vertices' lookups (5-15 % of
     the render where no record qualified)."""
     r = index.records
-    reach_ok = r.radius * index.max_error >= FIRST_READ_MIN_REACH * lookup_radius
     even = index.bounce_variance() <= FIRST_READ_MAX_VARIANCE
-    return bool(dr.any(reach_ok & even & (mi.luminance(r.irradiance) > 0))[0])
+    return bool(dr.any(_reach_spans_photons(r.radius, index, lookup_radius) & even &
+                       (mi.luminance(r.irradiance) > 0))[0])
 
 
 def first_read_pays(ctx: PathContext, v: Vertex, active, radius):
@@ -93,7 +98,7 @@ def first_read_pays(ctx: PathContext, v: Vertex, active, radius):
     and the record that guides there found bounced light (where it found none, the
     photons may have missed the place) evenly enough (FIRST_READ_MAX_VARIANCE)."""
     index = ctx.view.index
-    active = mi.Bool(active) & (radius * index.max_error >= FIRST_READ_MIN_REACH * ctx.untrusted_radius)
+    active = mi.Bool(active) & _reach_spans_photons(radius, index, ctx.untrusted_radius)
     lanes = dr.width(radius)
     record, bounced_share = only_where(
         active, lambda: index.guide_record(v.si.p, v.n, active),
