@@ -290,3 +290,53 @@ def test_packed_photons_and_entries_give_the_same_estimates_and_nearest_photons(
         assert np.array(packed[1]).mean() > 0.5
         np.testing.assert_array_equal(np.array(packed[0]), np.array(plain[0]))
         np.testing.assert_array_equal(np.array(packed[1]), np.array(plain[1]))
+
+
+def test_a_photon_on_a_curved_surface_is_seen_from_beside_it():
+    """Gather lookups on a sphere read their nearest photon on it: every query finds
+    one and none is hidden. The chord between two points of a convex surface runs
+    under it; with both ends lifted by a fixed height only, the sphere hid the photon
+    from 54 % of the queries, which read 0 (the white room's mouldings and sofas, and
+    Sponza's columns, came out dark: 26 % / 8 % of their records' lookups hidden)."""
+    from pmic_integrator.gather import GatherSource
+    from pmic_integrator.photons import PhotonMap
+
+    def on_sphere(count, seed):
+        d = np.random.default_rng(seed).normal(size=(count, 3))
+        return (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+
+    scene = mi.load_dict({"type": "scene", "ball": {"type": "sphere", "radius": 1.0}})
+    spots = on_sphere(300, 0)  # ~0.2 apart: each query's nearest photon 0.05-0.15 off
+    photons = PhotonMap(mi.Point3f(spots.T), mi.Vector3f(spots.T), dr.full(mi.Color3f, 1e-3, 300),
+                        dr.full(mi.UInt32, 2, 300), dr.zeros(mi.Bool, 300),
+                        mi.UInt32(np.arange(300, dtype=np.uint32)), 300)
+    photons.irradiance = dr.full(mi.Color3f, 1.0, 300)
+    source = GatherSource.build(photons, 0.05)
+    queries = on_sphere(4000, 1)
+    read = np.array(source.irradiance_of(scene, mi.Point3f(queries.T), mi.Vector3f(queries.T)))
+    assert (read[0] == 1.0).mean() == 1.0, f"{(read[0] == 0).mean():.1%} of the queries read 0"
+
+
+def test_a_photon_far_off_the_plane_stays_hidden_behind_what_lies_between():
+    """The extra lift is capped: a floor lookup under a table whose nearest accepted
+    photon lies on the table top (a wide search step's plane test lets such photons
+    through where photons are sparse) must see the table between them. Lifted by the
+    photon's whole height, both ends passed over the table: the lamp room at 30k
+    photons read the inside of its shade through the shade's base, 1.17 of path."""
+    from pmic_integrator.gather import GatherSource
+    from pmic_integrator.photons import PhotonMap
+
+    scene = mi.load_dict({"type": "scene",
+                          "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(2.0)},
+                          "table": {"type": "rectangle", "to_world":
+                                    mi.ScalarTransform4f().translate([0, 0, 0.7]).scale(0.25)}})
+    top = mi.Point3f(0.15, 0.0, 0.7)
+    photons = PhotonMap(top, mi.Vector3f(0, 0, 1), mi.Color3f(1e-3), mi.UInt32(2), mi.Bool(False),
+                        mi.UInt32(0), 1)
+    photons.irradiance = mi.Color3f(1.0)
+    source = GatherSource.build(photons, 0.05)
+    up = mi.Vector3f(0, 0, 1)
+    under, beside = mi.Point3f([0.1, 0.1], [0.0, 0.1], [0.0, 0.7]), mi.Bool(True)
+    # (The second query, on the table top beside the photon: seen.)
+    assert np.array(source._visible(scene, under, up, mi.Point3f(top.x, top.y, top.z), beside)).tolist() \
+        == [False, True]

@@ -1,0 +1,91 @@
+"""What the records' gathers read at their hits: the share of photon lookups whose
+nearest photon was found and seen, found but hidden by the visibility test
+(``GatherSource._visible``: the lookup reads 0), or not found at all; and the image's
+mean luminance against the reference, with the test as it is and, for comparison,
+with no test at all (which leaks through thin walls: an upper bound, not a setting).
+
+    python benchmarks/gather_visibility.py                       # white room, Sponza
+    python benchmarks/gather_visibility.py --scenes veach_bidir --spp 16
+
+The counts come from wrapping ``GatherSource._visible`` for the evaluated batches of
+the records' gathers (``GatherSource.irradiance_of``); camera paths' lookups run
+inside symbolic loops and are not counted. Results go to
+``benchmarks/results/gather_visibility.md``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+import pmic_integrator  # noqa: F401  (before mitsuba: the LLVM it needs)
+import drjit as dr
+import mitsuba as mi
+
+import common
+from public_scenes import reference_of
+from pmic_integrator import gather, metrics
+
+
+def render_counting(scene, spp: int, test: bool) -> tuple[np.ndarray, dict]:
+    """pmic's image at defaults, and the records' lookups counted by outcome; with
+    ``test`` False, every found photon is read (no visibility test)."""
+    counts = {"seen": 0, "hidden": 0, "not found": 0}
+    original = gather.GatherSource._visible
+
+    def counted(self, scene, p, n, position, found):
+        if dr.flag(dr.JitFlag.SymbolicScope):  # a camera path's lookup: left as it is
+            return original(self, scene, p, n, position, found)
+        seen = original(self, scene, p, n, position, found) if test else mi.Bool(found)
+        counts["seen"] += int(dr.count(seen)[0])
+        counts["hidden"] += int(dr.count(found & ~seen)[0])
+        counts["not found"] += int(dr.count(~found)[0])
+        return seen
+
+    gather.GatherSource._visible = counted
+    try:
+        image = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "pmic"}), spp=spp))
+    finally:
+        gather.GatherSource._visible = original
+    return image[..., :3], counts
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="+", default=["white_room", "sponza"])
+    parser.add_argument("--spp", type=int, default=8)
+    parser.add_argument("--stem", default="gather_visibility")
+    args = parser.parse_args(argv)
+    mi.set_variant(common.VARIANT)
+    rows = []
+    for name in args.scenes:
+        reference = reference_of(name)
+        if reference is None:
+            print(f"{name}: no reference (benchmarks/public_references.py), skipped")
+            continue
+        ref, noise, _ = reference
+        for test in (True, False):
+            image, counts = render_counting(common.load_public(name), args.spp, test)
+            total = max(sum(counts.values()), 1)
+            row = {"scene": name, "visibility test": "on" if test else "off (leaks)",
+                   "lookups": total, **{k: v / total for k, v in counts.items()},
+                   "luminance": metrics.luminance_ratio(image, ref),
+                   "relMSE": metrics.rel_mse(image, ref) - noise}
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    lines = [f"# The records' photon lookups: seen, hidden, not found ({args.spp} spp)", "",
+             f"`python benchmarks/gather_visibility.py --scenes {' '.join(args.scenes)} --spp {args.spp}`",
+             "", "| scene | visibility test | lookups | seen | hidden | not found | luminance | relMSE |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['visibility test']} | {r['lookups']:,} | {r['seen']:.3f} | "
+                     f"{r['hidden']:.3f} | {r['not found']:.3f} | {r['luminance']:.4f} | {r['relMSE']:.3e} |")
+    common.RESULTS.mkdir(parents=True, exist_ok=True)
+    (common.RESULTS / f"{args.stem}.md").write_text("\n".join(lines) + "\n")
+    (common.RESULTS / f"{args.stem}.json").write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
