@@ -336,7 +336,6 @@ def test_a_photon_far_off_the_plane_stays_hidden_behind_what_lies_between():
     photons.irradiance = mi.Color3f(1.0)
     source = GatherSource.build(photons, 0.05)
     up = mi.Vector3f(0, 0, 1)
-    under, beside = mi.Point3f([0.1, 0.1], [0.0, 0.1], [0.0, 0.7]), mi.Bool(True)
-    # (The second query, on the table top beside the photon: seen.)
-    assert np.array(source._visible(scene, under, up, mi.Point3f(top.x, top.y, top.z), beside)).tolist() \
-        == [False, True]
+    # One query on the floor under the table, one on the table top beside the photon.
+    queries = mi.Point3f([0.1, 0.1], [0.0, 0.1], [0.0, 0.7])
+    assert np.array(source._visible(scene, queries, up, top, mi.Bool(True))).tolist() == [False, True]
