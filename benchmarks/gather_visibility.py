@@ -2,7 +2,9 @@
 nearest photon was found and seen, found but hidden by the visibility test
 (``GatherSource._visible``: the lookup reads 0), or not found at all; and the image's
 mean luminance against the reference, with the test as it is and, for comparison,
-with no test at all (which leaks through thin walls: an upper bound, not a setting).
+with no test at all (which leaks through thin walls: an upper bound, not a setting),
+and with the lookups that find no photon reading the mean of the seen ones (a probe
+of what those lookups are worth, not a setting).
 
     python benchmarks/gather_visibility.py                       # white room, Sponza
     python benchmarks/gather_visibility.py --scenes veach_bidir --spp 16
@@ -28,26 +30,46 @@ from public_scenes import reference_of
 from pmic_integrator import gather, metrics
 
 
-def render_counting(scene, spp: int, test: bool) -> tuple[np.ndarray, dict]:
-    """pmic's image at defaults, and the records' lookups counted by outcome; with
-    ``test`` False, every found photon is read (no visibility test)."""
+#: What each mode's row is called in the table.
+MODES = {"on": "on", "off": "off (leaks)", "fill": "on; none found: batch mean"}
+
+
+def render_counting(scene, spp: int, mode: str) -> tuple[np.ndarray, dict]:
+    """pmic's image at defaults, and the records' lookups counted by outcome. ``mode``:
+    "on" (as pmic runs), "off" (every found photon is read: no visibility test), or
+    "fill" (as "on", but lookups that find no photon read the mean irradiance of the
+    batch's seen ones instead of 0: a probe of what those lookups are worth)."""
     counts = {"seen": 0, "hidden": 0, "not found": 0}
-    original = gather.GatherSource._visible
+    original, original_of = gather.GatherSource._visible, gather.GatherSource.irradiance_of
+    last = {}
 
     def counted(self, scene, p, n, position, found):
         if dr.flag(dr.JitFlag.SymbolicScope):  # a camera path's lookup: left as it is
             return original(self, scene, p, n, position, found)
-        seen = original(self, scene, p, n, position, found) if test else mi.Bool(found)
+        seen = mi.Bool(found) if mode == "off" else original(self, scene, p, n, position, found)
         counts["seen"] += int(dr.count(seen)[0])
         counts["hidden"] += int(dr.count(found & ~seen)[0])
         counts["not found"] += int(dr.count(~found)[0])
+        last.update(found=found, seen=seen)
         return seen
 
+    def filled(self, scene, p, n, without_delta=False, caustic=None):
+        last.clear()
+        value = original_of(self, scene, p, n, without_delta, caustic)
+        if not last:
+            return value
+        seen = last["seen"]
+        count = max(int(dr.count(seen)[0]), 1)
+        mean = mi.Color3f(*(float(dr.sum(dr.select(seen, value[i], 0.0))[0]) / count for i in range(3)))
+        return dr.select(last["found"], value, mean)
+
     gather.GatherSource._visible = counted
+    if mode == "fill":
+        gather.GatherSource.irradiance_of = filled
     try:
         image = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "pmic"}), spp=spp))
     finally:
-        gather.GatherSource._visible = original
+        gather.GatherSource._visible, gather.GatherSource.irradiance_of = original, original_of
     return image[..., :3], counts
 
 
@@ -65,10 +87,10 @@ def main(argv=None) -> int:
             print(f"{name}: no reference (benchmarks/public_references.py), skipped")
             continue
         ref, noise, _ = reference
-        for test in (True, False):
-            image, counts = render_counting(common.load_public(name), args.spp, test)
+        for mode in ("on", "off", "fill"):
+            image, counts = render_counting(common.load_public(name), args.spp, mode)
             total = max(sum(counts.values()), 1)
-            row = {"scene": name, "visibility test": "on" if test else "off (leaks)",
+            row = {"scene": name, "visibility test": MODES[mode],
                    "lookups": total, **{k: v / total for k, v in counts.items()},
                    "luminance": metrics.luminance_ratio(image, ref),
                    "relMSE": metrics.rel_mse(image, ref) - noise}
