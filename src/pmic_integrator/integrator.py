@@ -64,8 +64,9 @@ class PMICIntegrator(mi.SamplingIntegrator):
            photon lookup radii, and a record's gather was even): far less raw noise
            in rooms lit through a door, but an error a denoiser does not remove.
            ``"first_hit"``: the paper's interpolation at the first diffuse vertex
-           (less noise at few samples, but record-sized blotches that stay). With any of them, the cache is view independent: a function of
-           the scene, the settings and ``seed`` only.
+           (less noise at few samples, but record-sized blotches that stay). With
+           any of them, the cache is view independent: a function of the scene, the
+           settings and ``seed`` only.
        * - ``aovs``
          - string
          - ``""``

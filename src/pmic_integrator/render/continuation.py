@@ -48,14 +48,16 @@ def choose_guides(ctx: PathContext, v: Vertex, reads: Reads) -> Guides:
     config, index, si, n = ctx.config, ctx.view.index, v.si, v.n
     lanes = dr.width(si.p)
     traced_on = reads.traced_here & v.active_next  #: traced, and the path goes on
-    # (a first read's sky samples follow the record too)
-    guided = (reads.traced_here | reads.first_read) & v.active_next
+    # (a first read's sky samples follow the record too; the first-read test found it)
+    first_on = reads.first_read & v.active_next
+    guided = traced_on | first_on
     record, fraction = mi.UInt32(0), mi.Float(0.0)
     if config.guiding:
         record, bounced_share = only_where(
-            guided, lambda: index.guide_record(si.p, n, guided),
+            traced_on, lambda: index.guide_record(si.p, n, traced_on),
             lambda: (dr.zeros(mi.UInt32, lanes), dr.zeros(mi.Float, lanes)), label="guide_record")
-        fraction = GUIDE_FRACTION * bounced_share
+        record = dr.select(first_on, reads.first_record, record)
+        fraction = GUIDE_FRACTION * dr.select(first_on, reads.first_share, bounced_share)
     sky_fraction = mi.Float(0.0)
     if config.sky_guided:
         sees = index.sees_sky(record, guided & (fraction > 0))

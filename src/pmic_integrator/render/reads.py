@@ -96,7 +96,11 @@ def first_read_pays(ctx: PathContext, v: Vertex, active, radius):
     their weighted mean R) that read the records' bounced light rather than trace a
     bounce: where the records' reach spans FIRST_READ_MIN_REACH photon lookup radii,
     and the record that guides there found bounced light (where it found none, the
-    photons may have missed the place) evenly enough (FIRST_READ_MAX_VARIANCE)."""
+    photons may have missed the place) evenly enough (FIRST_READ_MAX_VARIANCE).
+
+    Returns ``(lanes, guiding record, its bounced share)``: the continuation's guides
+    (``continuation.choose_guides``) take the record from here instead of searching
+    for it again."""
     index = ctx.view.index
     active = mi.Bool(active) & _reach_spans_photons(radius, index, ctx.untrusted_radius)
     lanes = dr.width(radius)
@@ -105,7 +109,7 @@ def first_read_pays(ctx: PathContext, v: Vertex, active, radius):
         lambda: (dr.zeros(mi.UInt32, lanes), dr.zeros(mi.Float, lanes)), label="first_read_record")
     active &= bounced_share > 0
     variance = dr.gather(mi.Float, index.bounce_variance(), record, active)
-    return active & (variance <= FIRST_READ_MAX_VARIANCE)
+    return active & (variance <= FIRST_READ_MAX_VARIANCE), record, bounced_share
 
 
 def where_read(ctx: PathContext, state: PathState, v: Vertex) -> Reads:
@@ -129,7 +133,7 @@ def where_read(ctx: PathContext, state: PathState, v: Vertex) -> Reads:
                                           azimuths=response_azimuths(config.leaning))
         read_n = tilted_normal(v.shading_n, tilt)
     records_here = mi.Bool(False)
-    first_read = mi.Bool(False)
+    first_read, first_record, first_share = mi.Bool(False), mi.UInt32(0), mi.Float(0.0)
     if config.gather_first:
         probe = (cache_ok | inseparable) & (traced > 0)
         if config.bounded:
@@ -145,7 +149,7 @@ def where_read(ctx: PathContext, state: PathState, v: Vertex) -> Reads:
         trust = probe & ((v.si.t >= TRUST_RECORD_RADII * trusted_radius) |
                          (traced >= MAX_TRACED_BOUNCES))
         if config.first_reads:
-            first_read = first_read_pays(ctx, v, first_probe & covered, radius)
+            first_read, first_record, first_share = first_read_pays(ctx, v, first_probe & covered, radius)
             # (its light from the lights is sampled here: the records' bounced light only)
             cached = dr.select(first_read, dr.maximum(cached - cached_direct, 0.0), cached)
         traced_here = v.lit_diffuse & ~trust & ~first_read
@@ -186,4 +190,5 @@ def where_read(ctx: PathContext, state: PathState, v: Vertex) -> Reads:
                  trusted_whole=trusted_whole, cached=cached, covered=covered,
                  cached_direct=cached_direct, records_here=records_here,
                  read_caustic=read_caustic, response=response, coat_read=coat_read,
-                 coat_response=coat_response, from_records=from_records, first_read=first_read)
+                 coat_response=coat_response, from_records=from_records, first_read=first_read,
+                 first_record=first_record, first_share=first_share)

@@ -74,6 +74,10 @@ class Reads:
     #: Adaptive estimator: a first diffuse vertex that reads the records' bounced light
     #: (part of ``trust``, not ``from_records``: its direct light is sampled).
     first_read: mi.Bool
+    #: There: the record that guides its continuation and that record's bounced share
+    #: (``RecordIndex.guide_record``, found by the first-read test).
+    first_record: mi.UInt32
+    first_share: mi.Float
 
 
 @dataclass
