@@ -97,15 +97,13 @@ def main(argv=None) -> int:
             rows.append(row)
             print(json.dumps(row), flush=True)
     lines = [f"# The records' photon lookups: seen, hidden, not found ({args.spp} spp)", "",
-             f"`python benchmarks/gather_visibility.py --scenes {' '.join(args.scenes)} --spp {args.spp}`",
+             f"`{common.command(__file__, argv)}` ({common.machine_summary()})",
              "", "| scene | visibility test | lookups | seen | hidden | not found | luminance | relMSE |",
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['scene']} | {r['visibility test']} | {r['lookups']:,} | {r['seen']:.3f} | "
                      f"{r['hidden']:.3f} | {r['not found']:.3f} | {r['luminance']:.4f} | {r['relMSE']:.3e} |")
-    common.RESULTS.mkdir(parents=True, exist_ok=True)
-    (common.RESULTS / f"{args.stem}.md").write_text("\n".join(lines) + "\n")
-    (common.RESULTS / f"{args.stem}.json").write_text(json.dumps(rows, indent=1))
+    print(f"written {common.write_results(common.RESULTS, args.stem, rows, lines)}")
     return 0
 
 
