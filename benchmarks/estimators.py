@@ -27,15 +27,12 @@ import numpy as np
 import common
 from common import RESULTS
 from public_scenes import ORDER, load_kind, reference_of
-
-KINDS = ("door_ajar", "sky_through_window", "sunlit_classroom", "tall_stairwell")
+from pmic_integrator.kinds import INTERIOR_KINDS
 
 
 def load(name: str, reference_seconds: float):
     """(scene, reference image, the reference's own relMSE noise)."""
-    from pmic_integrator import kinds
-
-    if name in kinds.INTERIOR_KINDS:
+    if name in INTERIOR_KINDS:
         scene, (image, noise, _) = load_kind(name, reference_seconds)
         return scene, image, noise
     found = reference_of(name)
@@ -78,7 +75,7 @@ def markdown(rows, estimators, spp: int, command: str) -> list[str]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", nargs="*", default=list(KINDS) + list(ORDER))
+    parser.add_argument("--scenes", nargs="*", default=list(INTERIOR_KINDS) + list(ORDER))
     parser.add_argument("--estimators", nargs="+", default=["final_gather", "adaptive"])
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--reference-seconds", type=float, default=60.0)
