@@ -13,11 +13,15 @@ PLUGIN_NAME = "pmic"
 
 _registered: set[str] = set()
 _installed = False
+#: Dr.Jit's vectorised backends; Mitsuba names its variants after them.
+JIT_BACKENDS = ("llvm", "cuda", "metal")
 
 
 def supported(variant: str | None) -> bool:
-    """pmic needs a JIT (vectorised) RGB variant: llvm_ad_rgb or cuda_ad_rgb."""
-    return bool(variant) and variant.split("_")[0] in ("llvm", "cuda") and variant.endswith("_rgb")
+    """pmic needs a JIT (vectorised) RGB or spectral variant: ``llvm_*``, ``cuda_*`` or
+    ``metal_*``, ending in ``_rgb`` or ``_spectral`` (not polarised, not monochrome)."""
+    return (bool(variant) and variant.split("_")[0] in JIT_BACKENDS
+            and variant.endswith(("_rgb", "_spectral")))
 
 
 def register(variant: str | None = None) -> None:
@@ -38,15 +42,15 @@ def _create(props):
     if _llvm.problem and mi.variant().startswith("llvm"):
         raise _llvm.LLVMUnavailableError(_llvm.problem)
     # Imported lazily: the integrator module needs an active variant at import time.
-    from pmic_integrator.integrator import PMICIntegrator
+    from pmic_integrator.integrator import integrator_class
 
-    return PMICIntegrator(props)
+    return integrator_class()(props)
 
 
 def _unsupported(variant: str):
     raise ValueError(
-        f"integrator 'pmic': variant must be a JIT RGB variant ('llvm_ad_rgb' or "
-        f"'cuda_ad_rgb'), got '{variant}'"
+        f"integrator 'pmic': variant must be a JIT RGB or spectral variant (e.g. "
+        f"'llvm_ad_rgb', 'llvm_ad_spectral', 'cuda_ad_rgb'), got '{variant}'"
     )
 
 

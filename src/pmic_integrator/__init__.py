@@ -1,7 +1,7 @@
 """pmic: photon mapping with a view-independent irradiance cache, for Mitsuba 3.
 
 Importing this package (1) points Dr.Jit at a usable libLLVM before ``drjit`` is loaded,
-and (2) registers the ``pmic`` integrator with Mitsuba for every JIT RGB variant, now
+and (2) registers the ``pmic`` integrator with Mitsuba for every JIT RGB or spectral variant, now
 and whenever ``mi.set_variant`` is called later. After::
 
     import pmic_integrator

@@ -15,6 +15,7 @@ import mitsuba as mi
 import numpy as np
 
 from ._jit import ONE_MINUS_EPSILON, finite
+from .spectra import channel_mean, reference_wavelengths
 
 #: Outgoing directions at which :func:`diffuse_response` evaluates the lobes: the
 #: response is (1/π) ∫ f(wo) cos θ dω over the hemisphere, integrated in cos θ (uniform
@@ -102,22 +103,22 @@ def diffuse_response(bsdf, si: mi.SurfaceInteraction3f, active,
     if ctx is None:
         ctx = diffuse_context()
     side = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
-    total = dr.zeros(mi.Color3f, dr.width(si.p))
+    total = dr.zeros(mi.Spectrum, dr.width(si.p))
     moment = dr.zeros(mi.Vector2f, dr.width(si.p))
     if with_tilt and azimuths < 3:
         raise ValueError(f"diffuse_response: a tilt needs at least 3 azimuths, got {azimuths}")
     for wo, weight in _response_directions(side, azimuths):
-        value = mi.Color3f(bsdf.eval(ctx, si, wo, active)) * weight
+        value = mi.Spectrum(bsdf.eval(ctx, si, wo, active)) * weight
         total += value
         if with_tilt:
-            moment += mi.Vector2f(wo.x, wo.y) * ((value.x + value.y + value.z) * (1.0 / 3.0))
+            moment += mi.Vector2f(wo.x, wo.y) * channel_mean(value)
     response = finite(total)
     if not with_tilt:
         return response
     # The lobe's best linear fit, f(wo) ≈ c · wo, has c = (3 / 2π) ∫ f wo dω; its
     # tangential part over the response (1/π ∫ f dω, the normal part for uniform
     # light) is the tilt of the normal about which to read the irradiance.
-    mean = (response.x + response.y + response.z) * (1.0 / 3.0)
+    mean = channel_mean(response)
     tilt = 1.5 * moment / dr.maximum(mean, 1e-30)
     length = dr.norm(tilt)
     tilt *= dr.minimum(1.0, TILT_MAX / dr.maximum(length, 1e-30))
@@ -140,7 +141,7 @@ def dark_side(bsdf, si: mi.SurfaceInteraction3f, active) -> mi.Bool:
     count in the density estimates of the texels beside it). One evaluation, only for
     light arriving from behind: a photon tracer's every hit asks."""
     behind = mi.Bool(active) & (mi.Frame3f.cos_theta(si.wi) < 0)
-    reflected = mi.Color3f(bsdf.eval(diffuse_context(), si, mi.Vector3f(0.0, 0.0, -1.0), behind))
+    reflected = mi.Spectrum(bsdf.eval(diffuse_context(), si, mi.Vector3f(0.0, 0.0, -1.0), behind))
     return behind & ~(dr.max(reflected) > 0)
 
 
@@ -150,9 +151,9 @@ def lobes_separable(bsdf, si: mi.SurfaceInteraction3f, active) -> mi.Bool:
     others, and the camera path treats the whole BSDF as one lobe."""
     side = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
     wo = mi.Vector3f(0.0, 0.0, side)
-    f_d = dr.max(mi.Color3f(bsdf.eval(diffuse_context(), si, wo, active)))
-    f_r = dr.max(mi.Color3f(bsdf.eval(non_diffuse_context(), si, wo, active)))
-    f_all = dr.max(mi.Color3f(bsdf.eval(mi.BSDFContext(), si, wo, active)))
+    f_d = dr.max(mi.Spectrum(bsdf.eval(diffuse_context(), si, wo, active)))
+    f_r = dr.max(mi.Spectrum(bsdf.eval(non_diffuse_context(), si, wo, active)))
+    f_all = dr.max(mi.Spectrum(bsdf.eval(mi.BSDFContext(), si, wo, active)))
     return ~(active & (f_all > 0) & (f_d + f_r > MASK_IGNORED_RATIO * f_all))
 
 
@@ -177,6 +178,8 @@ def _probe_interactions() -> mi.SurfaceInteraction3f:
     si.wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(v, u))
     si.dp_du, si.dp_dv = mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0)
     si.t = 1.0
+    if mi.is_spectral:
+        si.wavelengths = reference_wavelengths(lanes)
     return si
 
 
@@ -230,7 +233,7 @@ def peak_within(bsdf, si: mi.SurfaceInteraction3f, active, mean: mi.Float,
     active = mi.Bool(active)
     wo = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
     cos_o = dr.abs(mi.Frame3f.cos_theta(wo))
-    peak = dr.max(mi.Color3f(bsdf.eval(mi.BSDFContext(), si, wo, active))) / dr.maximum(cos_o, 1e-6)
+    peak = dr.max(mi.Spectrum(bsdf.eval(mi.BSDFContext(), si, wo, active))) / dr.maximum(cos_o, 1e-6)
     return active & (mean > 0) & (peak <= peak_ratio * mean)
 
 

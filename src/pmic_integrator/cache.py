@@ -27,6 +27,7 @@ from . import streams
 from . import skylight
 from .gather import PAST_TARGET_LIFTS, GatherSource, gather_radiance, stratified_directions
 from . import emission
+from . import spectra
 from ._jit import (ONE_MINUS_EPSILON, concat, finite, interleave, jittered, mean_value, opaque_float, opaque_u32,
                    rng as make_rng, scatter_min,
                    segment_blocked, shading_normal_on_side, surface_offset)
@@ -562,8 +563,12 @@ def _gather_rays(scene, source, p, n, strata, seed, offset, about=None,
     """Trace M·N stratified rays per point (about the normals ``about``, default
     ``n``); return per-ray data in [point][j][k] order."""
     ray, owner, local, j, k, rng = _stratified_rays(p, n, strata, seed, stream, offset, about)
+    if mi.is_spectral:  # each ray its own wavelengths; the records hold linear sRGB
+        ray.wavelengths, wavelength_weight = spectra.sample_wavelengths(rng.next_float32())
     radiance, distance = gather_radiance(scene, source, ray, rng,
                                          sample_delta=source.photons.irradiance_nodelta is not None)
+    if mi.is_spectral:
+        radiance = spectra.to_rgb(radiance * wavelength_weight, ray.wavelengths)
     dr.eval(radiance, distance)
     return owner, j, k, local, radiance, distance
 
@@ -785,7 +790,11 @@ def escaped_sky(scene: mi.Scene, direction: mi.Vector3f, distance: mi.Float,
     escaped &= dr.gather(mi.Float, openness, owner) <= opaque_float(openness_limit)
     si = dr.zeros(mi.SurfaceInteraction3f, dr.width(distance))
     si.wi = -direction
-    sky = mi.Color3f(environment.eval(si, escaped))
+    if mi.is_spectral:  # wavelengths spread over the rays (a guide: its colour is noise)
+        si.wavelengths, weight = spectra.sample_wavelengths(spectra.spread(dr.width(distance)))
+        sky = spectra.to_rgb(environment.eval(si, escaped) * weight, si.wavelengths)
+    else:
+        sky = mi.Color3f(environment.eval(si, escaped))
     return finite(sky, escaped)
 
 
@@ -886,6 +895,8 @@ def _direct_irradiance_of(scene, position, normal, samples: int, seed: int, offs
     rng = make_rng(lanes, seed, stream=streams.RECORD_DIRECT_DELTA if delta else streams.RECORD_DIRECT)
     within = dr.arange(mi.UInt32, lanes) % opaque_u32(samples)  # sample number
     u = mi.Point2f(rng.next_float32(), rng.next_float32())
+    if mi.is_spectral:  # each sample its own wavelengths; the records hold linear sRGB
+        ref.wavelengths, wavelength_weight = spectra.sample_wavelengths(rng.next_float32())
     if delta:  # strata of the choice of light: with even weights, each light once
         u.x = dr.minimum((mi.Float(within) + u.x) / samples, ONE_MINUS_EPSILON)
         ds, weight = emission.sample_emitter_direction(scene, ref, u, True, delta=True)
@@ -897,6 +908,8 @@ def _direct_irradiance_of(scene, position, normal, samples: int, seed: int, offs
             guide = skylight.SkyGuide(guides, owner, fraction)
         ds, weight = skylight.sample_emitter_direction(scene, sky, ref, cos_n, u, guide=guide,
                                                        delta=False)
+    if mi.is_spectral:
+        weight = spectra.to_rgb(weight * wavelength_weight, ref.wavelengths)
     cosine = dr.dot(ds.d, cos_n)
     e = weight * dr.maximum(cosine, 0.0)
     counted = (ds.pdf > 0) & dr.all(dr.isfinite(e))

@@ -31,6 +31,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import spectra
+
 __all__ = ["sample_emitter_rays", "sample_emitter_direction", "choose_emitter", "emitter_order", "emitter_pmf",
            "emitter_subset", "soft_pdf_scale", "is_delta",
            "emission_sphere", "emission_bounds", "scene_bbox"]
@@ -276,13 +278,31 @@ def _finite_rays_one_by_one(scene: mi.Scene, index, time, sample1, sample2, samp
         try:
             ray_i, weight_i = emitter.sample_ray(time, sample1, sample2, sample3, mine)
         except RuntimeError:
-            ray_i, weight_i = _sample_ray_by_evaluation(emitter, time, sample2, sample3, mine)
+            ray_i, weight_i = _sample_ray_by_evaluation(emitter, time, sample1, sample2, sample3, mine)
         ray = dr.select(mine, ray_i, ray)
         weight = dr.select(mine, mi.Spectrum(weight_i), weight)
     return ray, weight
 
 
-def _sample_ray_by_evaluation(emitter, time, sample2, sample3, active):
+def _infinite_wavelengths(scene: mi.Scene, index, si, sample1, infinite):
+    """Spectral variants: the wavelengths of the lanes of ``infinite`` (emitter ``index``
+    an environment or a sun), drawn by that emitter's ``sample_wavelengths`` at ``si``,
+    and their weight. One call per infinite emitter, not one through the emitter
+    pointers: that call traces every emitter's, and an area light of a ``spectrum``
+    texture could not be traced so (Mitsuba raised "jit_var_schedule(): not permitted")."""
+    lanes = dr.width(infinite)
+    wavelengths, weight = dr.zeros(mi.Spectrum, lanes), dr.zeros(mi.Spectrum, lanes)
+    for i, emitter in enumerate(scene.emitters()):
+        if not mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite):
+            continue
+        mine = infinite & (index == i)
+        wavelengths_i, weight_i = emitter.sample_wavelengths(si, sample1, mine)
+        wavelengths = dr.select(mine, wavelengths_i, wavelengths)
+        weight = dr.select(mine, mi.Spectrum(weight_i), weight)
+    return wavelengths, weight
+
+
+def _sample_ray_by_evaluation(emitter, time, sample1, sample2, sample3, active):
     """A ray of ``emitter`` sampled without its texture's sampling: uniform over the
     geometry and evaluated (unbiased; noisier where the texture varies).
 
@@ -291,7 +311,11 @@ def _sample_ray_by_evaluation(emitter, time, sample2, sample3, active):
     * A spot or projector: from its position, a direction uniform in the spot's cone
       (else over the sphere), weight ``I(ω) / p_ω``; ``I(ω)`` is what the emitter's
       ``sample_direction`` returns towards a point at distance 1 along ω.
+
+    Spectral variants draw the wavelengths from ``sample1`` as a sensor does (the
+    weight includes their ``1/pdf``).
     """
+    wavelengths, wavelength_weight = spectra.sample_wavelengths(sample1)
     shape = emitter.get_shape()
     if shape is not None:
         ps = shape.sample_position(time, sample2, active)
@@ -300,7 +324,9 @@ def _sample_ray_by_evaluation(emitter, time, sample2, sample3, active):
         si.sh_frame = mi.Frame3f(ps.n)
         local = mi.warp.square_to_cosine_hemisphere(sample3)
         si.wi = local  # eval reads the emitted direction in the local frame
-        radiance = emitter.eval(si, active)
+        if wavelengths is not None:
+            si.wavelengths = wavelengths
+        radiance = emitter.eval(si, active) * wavelength_weight
         weight = radiance * dr.select(ps.pdf > 0, dr.pi / ps.pdf, 0.0)
         direction = mi.Frame3f(ps.n).to_world(local)
         return mi.Ray3f(ps.p, direction, time, si.wavelengths), weight
@@ -317,8 +343,10 @@ def _sample_ray_by_evaluation(emitter, time, sample2, sample3, active):
     direction = dr.normalize(to_world @ mi.Vector3f(local))
     it = dr.zeros(mi.Interaction3f, dr.width(pdf))
     it.p, it.time = origin + direction, time
+    if wavelengths is not None:
+        it.wavelengths = wavelengths
     ds, intensity = emitter.sample_direction(it, sample2, active)
-    weight = intensity * dr.select(pdf > 0, dr.rcp(pdf), 0.0)
+    weight = intensity * wavelength_weight * dr.select(pdf > 0, dr.rcp(pdf), 0.0)
     return mi.Ray3f(origin, direction, time, it.wavelengths), weight
 
 
@@ -391,7 +419,8 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
     if spectral:
         si = dr.zeros(mi.SurfaceInteraction3f, n)
         si.p, si.uv, si.time = origin, ds.uv, time
-        wavelengths, wav_weight = emitter.sample_wavelengths(si, sample1, infinite)
+        si.wi = -ds.d  # (a sky's spectrum depends on the direction: sunsky's is 0 without)
+        wavelengths, wav_weight = _infinite_wavelengths(scene, index, si, sample1, infinite)
         pdf = dr.select(ds.delta, 1.0, ds.pdf)
         weight_i = mi.Spectrum(wav_weight) * (area / pdf)
         weight_i = dr.select(infinite & (pdf > 0), weight_i, 0.0)

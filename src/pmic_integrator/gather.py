@@ -23,6 +23,7 @@ from .emission import sample_emitter_direction
 from .hashgrid import PointGrid
 from .irradiance import nearest_photon
 from .photons import PhotonMap
+from .spectra import from_rgb
 
 # --- Internal tuning constants -------------------------------------------------------
 #: Specular/glossy bounces a gather ray may follow before it gives up (glass needs two
@@ -352,8 +353,8 @@ class GatherWalk:
     ray: mi.Ray3f
     rng: mi.PCG32
     active: mi.Bool
-    radiance: mi.Color3f  #: gathered so far, but for the photons' irradiance (GatherLookup)
-    throughput: mi.Color3f
+    radiance: mi.Spectrum  #: gathered so far, but for the photons' irradiance (GatherLookup)
+    throughput: mi.Spectrum
     distance: mi.Float  #: distance to the first hit (+inf: none)
     bounce: mi.UInt32
     near_bounces: mi.UInt32
@@ -366,8 +367,8 @@ class GatherWalk:
     def start(ray: mi.Ray3f, rng: mi.PCG32, active) -> "GatherWalk":
         lanes = dr.width(ray.o)
         return GatherWalk(ray=mi.Ray3f(ray), rng=rng, active=mi.Bool(active),
-                          radiance=dr.zeros(mi.Color3f, lanes),
-                          throughput=dr.full(mi.Color3f, 1.0, lanes),
+                          radiance=dr.zeros(mi.Spectrum, lanes),
+                          throughput=dr.full(mi.Spectrum, 1.0, lanes),
                           distance=dr.full(mi.Float, dr.inf, lanes),
                           bounce=dr.zeros(mi.UInt32, lanes), near_bounces=dr.zeros(mi.UInt32, lanes),
                           count_emission=dr.zeros(mi.Bool, lanes), crossed=dr.zeros(mi.Bool, lanes))
@@ -382,23 +383,28 @@ class GatherLookup:
     mask: mi.Bool
     p: mi.Point3f
     n: mi.Vector3f
-    weight: mi.Color3f
+    weight: mi.Spectrum
     caustic: mi.Bool | None = None
+    #: The walk's wavelengths (spectral variants; None in RGB ones): ``weight`` is at
+    #: them, the photons' irradiance is linear sRGB (spectra.from_rgb).
+    wavelengths: mi.Spectrum | None = None
     #: Where each lookup came from in the arrays it was gathered from (:meth:`select`):
     #: the rays of a first vertex, the (ray, vertex) slots of the rest.
     lanes: mi.UInt32 | None = None
 
-    def reflected(self, irradiance: mi.Color3f) -> mi.Color3f:
+    def reflected(self, irradiance: mi.Color3f) -> mi.Spectrum:
         """What the lookup adds to the walk's radiance."""
-        return finite(self.weight * irradiance, self.mask)
+        return finite(self.weight * from_rgb(irradiance, self.wavelengths), self.mask)
 
     def select(self, lanes: mi.UInt32) -> "GatherLookup":
         """The lookups of ``lanes`` (all asked for: ``mask`` true), kept as ``lanes``."""
         return GatherLookup(mask=dr.full(mi.Bool, True, dr.width(lanes)),
                             p=dr.gather(mi.Point3f, self.p, lanes),
                             n=dr.gather(mi.Vector3f, self.n, lanes),
-                            weight=dr.gather(mi.Color3f, self.weight, lanes),
+                            weight=dr.gather(mi.Spectrum, self.weight, lanes),
                             caustic=None if self.caustic is None else dr.gather(mi.Bool, self.caustic, lanes),
+                            wavelengths=None if self.wavelengths is None else
+                            dr.gather(mi.Spectrum, self.wavelengths, lanes),
                             lanes=mi.UInt32(lanes))
 
     def write(self, asked: "GatherLookup", slot: mi.UInt32) -> None:
@@ -409,6 +415,8 @@ class GatherLookup:
         dr.scatter(self.weight, asked.weight, slot, asked.mask)
         if self.caustic is not None:
             dr.scatter(self.caustic, asked.caustic, slot, asked.mask)
+        if self.wavelengths is not None:
+            dr.scatter(self.wavelengths, asked.wavelengths, slot, asked.mask)
 
 
 def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, sample_delta: bool,
@@ -417,7 +425,7 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
     the walk past it and the photon lookups it asks for (:class:`GatherLookup`), which
     the caller answers in place or later."""
     ray, rng, throughput, bounce = walk.ray, walk.rng, walk.throughput, walk.bounce
-    radiance, near_bounces, crossed = mi.Color3f(walk.radiance), walk.near_bounces, walk.crossed
+    radiance, near_bounces, crossed = mi.Spectrum(walk.radiance), walk.near_bounces, walk.crossed
     ctx_specular = non_diffuse_context()
     ctx_all = mi.BSDFContext()
     caustics = source.caustics_by_gathering
@@ -477,12 +485,13 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
         u = mi.Point2f(rng.next_float32(), rng.next_float32())
         ds, em_weight = sample_emitter_direction(scene, si, u, True, sampled, delta=True)
         cos_n = dr.maximum(dr.dot(ds.d, shading_normal_on_side(si, n)), 0.0)
-        direct = throughput * response * mi.Color3f(em_weight) * cos_n
+        direct = throughput * response * mi.Spectrum(em_weight) * cos_n
         if source.inseparable:
             f_whole = bsdf.eval(ctx_all, si, si.to_local(ds.d), whole & (ds.pdf > 0))
-            direct = dr.select(whole, throughput * f_whole * mi.Color3f(em_weight), direct)
+            direct = dr.select(whole, throughput * f_whole * mi.Spectrum(em_weight), direct)
         radiance += finite(direct, sampled & (ds.pdf > 0))
-    asked = GatherLookup(mask=lookup, p=si.p, n=n, weight=throughput * response, caustic=caustic_lanes)
+    asked = GatherLookup(mask=lookup, p=si.p, n=n, weight=throughput * response, caustic=caustic_lanes,
+                         wavelengths=ray.wavelengths if mi.is_spectral else None)
     rest = active & ~near & ~whole & glossy
     rest &= bounce < GATHER_SPECULAR_BOUNCES
     # A BSDF that ignores lobe masks (principled), nearly diffuse here, gave its
@@ -595,10 +604,12 @@ def _walk_on_deferred(scene: mi.Scene, source: GatherSource, walk: GatherWalk, s
     rays = dr.width(walk.active)
     slots = rays * GATHER_VERTICES
     deferred = GatherLookup(mask=dr.zeros(mi.Bool, slots), p=dr.zeros(mi.Point3f, slots),
-                            n=dr.zeros(mi.Vector3f, slots), weight=dr.zeros(mi.Color3f, slots),
+                            n=dr.zeros(mi.Vector3f, slots), weight=dr.zeros(mi.Spectrum, slots),
                             caustic=None if source.photons.irradiance_caustic is None else
-                            dr.zeros(mi.Bool, slots))
-    dr.make_opaque(deferred.mask, deferred.p, deferred.n, deferred.weight, deferred.caustic)
+                            dr.zeros(mi.Bool, slots),
+                            wavelengths=dr.zeros(mi.Spectrum, slots) if mi.is_spectral else None)
+    dr.make_opaque(deferred.mask, deferred.p, deferred.n, deferred.weight, deferred.caustic,
+                   deferred.wavelengths)
     first_slot = dr.arange(mi.UInt32, rays) * GATHER_VERTICES
 
     def vertex(walk):
@@ -633,15 +644,16 @@ def gather_radiance(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f, rng: m
     near_distance = opaque_float(source.near_hit_distance)
     walk = GatherWalk.start(ray, rng, True)
     walk, asked = _gather_vertex(scene, source, walk, sample_delta, near_distance)
-    dr.eval(walk, asked.mask, asked.p, asked.n, asked.weight, asked.caustic)
-    radiance = mi.Color3f(walk.radiance)
+    dr.eval(walk, asked.mask, asked.p, asked.n, asked.weight, asked.caustic, asked.wavelengths)
+    radiance = mi.Spectrum(walk.radiance)
     first = asked.select(dr.compress(asked.mask))  # at most one per ray
     going = dr.compress(walk.active)
     later = None
     if dr.width(going):
         rest, deferred = _walk_on_deferred(scene, source, dr.gather(GatherWalk, walk, going),
                                            sample_delta, near_distance)
-        dr.eval(rest.radiance, deferred.mask, deferred.p, deferred.n, deferred.weight, deferred.caustic)
+        dr.eval(rest.radiance, deferred.mask, deferred.p, deferred.n, deferred.weight, deferred.caustic,
+                deferred.wavelengths)
         dr.scatter(radiance, rest.radiance, going)
         later = deferred.select(dr.compress(deferred.mask))
     parts = [part for part in (first, later) if part is not None and dr.width(part.lanes)]
@@ -661,12 +673,12 @@ def gather_radiance(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f, rng: m
     if later is not None and dr.width(later.lanes):
         count = dr.width(later.lanes)
         part = dr.gather(mi.Color3f, irradiance, dr.arange(mi.UInt32, count) + opaque_u32(done))
-        by_slot = dr.zeros(mi.Color3f, dr.width(going) * GATHER_VERTICES)
+        by_slot = dr.zeros(mi.Spectrum, dr.width(going) * GATHER_VERTICES)
         dr.scatter(by_slot, later.reflected(part), later.lanes)
         dr.eval(by_slot)
         first_slot = dr.arange(mi.UInt32, dr.width(going)) * GATHER_VERTICES
-        total = dr.zeros(mi.Color3f, dr.width(going))
+        total = dr.zeros(mi.Spectrum, dr.width(going))
         for vertex in range(GATHER_VERTICES):
-            total += dr.gather(mi.Color3f, by_slot, first_slot + vertex)
+            total += dr.gather(mi.Spectrum, by_slot, first_slot + vertex)
         dr.scatter_add(radiance, total, going)
     return radiance, walk.distance

@@ -11,12 +11,12 @@ import drjit as dr
 import mitsuba as mi
 
 if mi.variant() is None:
-    # This module defines a subclass of the variant's SamplingIntegrator, so it needs a
-    # variant; imported before one is chosen (``help(PMICIntegrator)`` in a fresh
+    # ``PMICIntegrator`` is a subclass of the variant's SamplingIntegrator, so this module
+    # needs a variant; imported before one is chosen (``help(PMICIntegrator)`` in a fresh
     # interpreter), it picks the CPU one, as most users would.
     mi.set_variant("llvm_ad_rgb")
 
-from . import cachefile, camera, pipeline, streams  # noqa: E402
+from . import cachefile, camera, pipeline, spectra, streams  # noqa: E402
 from .irradiance import NormalBins  # noqa: E402
 from .pipeline import PreparedScene, SceneInfo, scene_fingerprint  # noqa: E402,F401 (re-exported)
 from .render.caustics import add_deferred_caustics  # noqa: E402
@@ -28,7 +28,7 @@ from .settings import METHODS, Settings  # noqa: E402,F401 (METHODS re-exported)
 log = logging.getLogger("pmic")
 
 
-class PMICIntegrator(mi.SamplingIntegrator):
+class _PMICMethods:
     r"""Photon mapping with a view-independent irradiance cache (``pmic``).
 
     Implements Gu Xiao-Ling and Wang Yi-Gang, *Irradiance Caching Algorithm Based on
@@ -190,8 +190,10 @@ class PMICIntegrator(mi.SamplingIntegrator):
     and beyond that one depth camera paths are path-traced (noisier); from 64 on the
     cache may add the light of longer paths (under 0.1 % of an image whose surfaces
     reflect 90 % of the light);
-    polarised and spectral variants are not supported (use ``llvm_ad_rgb`` or
-    ``cuda_ad_rgb``); it is not differentiable.
+    polarised and monochrome variants are not supported (the JIT RGB and spectral ones
+    are: ``llvm_ad_rgb``, ``llvm_ad_spectral``, ``cuda_ad_*``; in spectral ones the maps
+    and the cache store linear sRGB, :mod:`pmic_integrator.spectra`); it is not
+    differentiable.
 
     Parameter types are checked as strictly as Mitsuba's plugins do (an integer refuses
     2.9); a bad type or value raises ValueError naming it, before any work.
@@ -217,7 +219,7 @@ class PMICIntegrator(mi.SamplingIntegrator):
         # Parsed before Mitsuba's base class reads its own parameters (hide_emitters),
         # so that every bad parameter gets pmic's message.
         settings = Settings.parse(props)
-        super().__init__(props)
+        type(self).__base__.__init__(self, props)  # (the variant's SamplingIntegrator)
         #: Every parameter, parsed and checked once (ValueError naming a bad one).
         self.settings = settings
         self.stats: dict = {}
@@ -395,9 +397,13 @@ class PMICIntegrator(mi.SamplingIntegrator):
             dr.eval(state.L, state.valid, state.L_direct, state.L_indirect, state.L_caustic,
                     state.coverage, state.reads)
             L, L_caustic = add_deferred_caustics(ctx, self._caustic_bins(), state.reads, L, L_caustic,
-                                                 config.wants("caustic"), sampler.sample_count())
+                                                 config.wants("caustic"), sampler.sample_count(),
+                                                 ray.wavelengths)
         values = dict(guides, direct=state.L_direct,
                       indirect=state.L_indirect, caustic=L_caustic, coverage=[state.coverage])
+        if mi.is_spectral:  # the film takes AOVs as they are: linear sRGB
+            for name in ("direct", "indirect", "caustic"):
+                values[name] = spectra.camera_to_rgb(values[name], ray.wavelengths)
         return L, state.valid, [c for a in config.aovs for c in values[a]]
 
     def _caustic_bins(self) -> NormalBins:
@@ -409,6 +415,31 @@ class PMICIntegrator(mi.SamplingIntegrator):
             bins = NormalBins.build(prepared.caustic_map, prepared.caustic_grid)
             self._caustic_normal_bins = (prepared, bins)
         return bins
+
+
+_classes: dict = {}
+
+
+def integrator_class(variant: str | None = None) -> type:
+    """The ``pmic`` integrator class of ``variant`` (default: the active one): Mitsuba's
+    base classes are per variant, so a process that renders in ``llvm_ad_rgb`` and then
+    in ``llvm_ad_spectral`` (a notebook, a test run over every variant) needs a class
+    for each. The methods are the same (:class:`_PMICMethods`)."""
+    variant = variant or mi.variant()
+    cls = _classes.get(variant)
+    if cls is None:
+        base = getattr(__import__(f"mitsuba.{variant}", fromlist=["SamplingIntegrator"]),
+                       "SamplingIntegrator") if variant != mi.variant() else mi.SamplingIntegrator
+        # (One base only: nanobind refuses a mixin; the methods are copied instead.)
+        methods = {k: v for k, v in vars(_PMICMethods).items() if k not in ("__dict__", "__weakref__")}
+        cls = type("PMICIntegrator", (base,), dict(methods, __qualname__="PMICIntegrator"))
+        _classes[variant] = cls
+    return cls
+
+
+#: The integrator class of the variant active when this module was imported
+#: (:func:`integrator_class` gives any variant's).
+PMICIntegrator = integrator_class()
 
 
 def _memory_stats(p: PreparedScene) -> dict:

@@ -32,6 +32,7 @@ from .bsdfs import dark_side, lobes_separable, sample_lobes_apart
 from .cases import lobes_of
 from .emission import choose_emitter, emission_bounds, sample_emitter_rays
 from .streams import photon_batch_seed
+from .spectra import to_rgb
 
 log = logging.getLogger("pmic")
 
@@ -333,7 +334,7 @@ def _survivors(alive, rng, ray, flux, specular_so_far, shared, from_delta, path_
         # made its own kernels (a whole bounce's, 0.1 s), whenever a seed left one.
         keep = dr.gather(mi.UInt32, keep, mi.UInt32(0, 0))
     ray = dr.gather(mi.Ray3f, ray, keep)
-    flux = dr.gather(mi.Color3f, flux, keep)
+    flux = dr.gather(mi.Spectrum, flux, keep)
     if lone:
         flux = dr.select(dr.arange(mi.UInt32, 2) == 0, flux, 0.0)
     specular_so_far = dr.gather(mi.Bool, specular_so_far, keep)
@@ -384,7 +385,8 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
         # from the other side of a thin wall reject it.
         n = mi.Vector3f(si.n)
         n = dr.select(dr.dot(n, -ray.d) < 0, -n, n)
-        stored_power = flux * shading_normal_factors(si, n, -ray.d)
+        # Stored as linear sRGB (spectra.to_rgb: the photon's wavelengths projected).
+        stored_power = to_rgb(flux * shading_normal_factors(si, n, -ray.d), ray.wavelengths)
         dr.eval(store, si.p, n, stored_power, specular_so_far, shared)
         idx = dr.compress(store)
         if dr.width(idx) > 0:

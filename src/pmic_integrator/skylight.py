@@ -33,6 +33,7 @@ import numpy as np
 from . import emission
 from ._jit import ONE_MINUS_EPSILON
 from .emission import choose_emitter, emission_sphere, emitter_order, emitter_pmf
+from . import spectra
 
 # --- Internal tuning constants -------------------------------------------------------
 #: Cells of the sky tables: bands of z × sectors of φ (~1.4° × 1.4° at the horizon).
@@ -194,11 +195,18 @@ def _peaked_cells(emitter):
     # compiled the emitter's sampling again in a later render: 0.09 s).
     i = dr.arange(mi.UInt32, side * side)
     u = mi.Point2f((mi.Float(i // side) + 0.5) / side, (mi.Float(i % side) + 0.5) / side)
-    ds, weight = emitter.sample_direction(dr.zeros(mi.Interaction3f, side * side), u)
+    def sampled(wavelengths):
+        it = dr.zeros(mi.Interaction3f, side * side)
+        if wavelengths is not None:
+            it.wavelengths = wavelengths
+        return emitter.sample_direction(it, u)
+
+    ds, _ = sampled(spectra.reference_wavelengths(side * side))
     band, sector = _cell_of(ds.d, SKY_BANDS, SKY_SECTORS)
     cell = np.array(band * SKY_SECTORS + sector, dtype=np.int64)
     pdf = np.array(ds.pdf, dtype=np.float64)
-    power = np.array(mi.luminance(mi.Color3f(weight)), dtype=np.float64)  # L / p
+    weight = spectra.rgb_of(lambda wavelengths: sampled(wavelengths)[1], side * side)
+    power = np.array(mi.luminance(weight), dtype=np.float64)  # L / p
     pdf, power = (np.broadcast_to(a, cell.shape) for a in (pdf, power))  # a constant: one value
     ok = np.isfinite(pdf) & (pdf > 0) & np.isfinite(power) & (power > 0)
     if not ok.any():
@@ -264,7 +272,13 @@ class SkySampler:
         # Mean luminance of each cell from CELL_SAMPLES² stratified directions.
         si = dr.zeros(mi.SurfaceInteraction3f, len(directions))
         si.wi = -mi.Vector3f(directions.T.astype(np.float32))
-        radiance = np.array(mi.luminance(mi.Color3f(emitter.eval(si))), dtype=np.float64)
+
+        def evaluate(wavelengths):
+            if wavelengths is not None:
+                si.wavelengths = wavelengths
+            return emitter.eval(si)
+
+        radiance = np.array(mi.luminance(spectra.rgb_of(evaluate, len(directions))), dtype=np.float64)
         radiance = np.broadcast_to(radiance, (len(directions),))  # a constant sky gives one value
         radiance = np.where(np.isfinite(radiance) & (radiance > 0), radiance, 0.0)
         even = _variation_within_guide_bins(directions, radiance) <= EVEN_SKY_VARIATION
@@ -419,6 +433,8 @@ def sample_emitter_direction(scene: mi.Scene, sky: SkySampler | None, ref, norma
     ds.emitter = dr.select(mine, mi.EmitterPtr(sky.emitter), ds.emitter)
     si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ds.d))
     si.wi = -ds.d
+    if mi.is_spectral:
+        si.wavelengths = ref.wavelengths
     radiance = sky.emitter.eval(si, is_sky)
     env_pdf = dr.select(mine, pmf * sky.emitter.pdf_direction(ref, ds, mine), ds.pdf)
     table_pdf = dr.select(product & ~guided, sampled_table_pdf,

@@ -21,6 +21,7 @@ from ..irradiance import NormalBins, may_count_photons
 from .config import PathContext
 from .estimators import caustic_irradiance
 from .state import CausticRead
+from ..spectra import from_rgb
 
 #: A pixel's samples share the caustic-map estimate made at its first sample's first
 #: read where their own reads lie within this many of that estimate's kernel radius
@@ -33,8 +34,9 @@ CAUSTIC_SHARE_COSINE = 0.98
 
 
 def add_deferred_caustics(ctx: PathContext, bins: NormalBins, reads: list[CausticRead], L,
-                          L_caustic, want_caustic: bool, spp: int = 1):
-    """The paths' caustic-map ``reads`` added to ``L`` (and to the caustic AOV). The
+                          L_caustic, want_caustic: bool, spp: int = 1, wavelengths=None):
+    """The paths' caustic-map ``reads`` added to ``L`` (and to the caustic AOV), at the
+    paths' ``wavelengths`` (spectral variants; the map holds linear sRGB). The
     first reads of a pixel's ``spp`` samples (lane ``i`` is sample ``i % spp`` of pixel
     ``i // spp``) share one estimate where they fall close together on one surface
     (:func:`_pixel_shared_caustics`). ``bins``: the caustic map's normal bins."""
@@ -54,6 +56,8 @@ def add_deferred_caustics(ctx: PathContext, bins: NormalBins, reads: list[Causti
         else:
             irradiance = caustic_irradiance(ctx, dr.gather(mi.Point3f, read.p, lanes),
                                             dr.gather(mi.Vector3f, read.n, lanes), None, True)
+        if mi.is_spectral:
+            irradiance = from_rgb(irradiance, dr.gather(mi.Spectrum, wavelengths, lanes))
         caustic = finite(dr.gather(mi.Spectrum, read.weight, lanes) * irradiance, True)
         dr.scatter_add(L, caustic, lanes)
         if want_caustic:

@@ -97,6 +97,8 @@ def final_gather_ray(ctx: PathContext, sampler, si, n, active):
     precomputed irradiance: E ≈ π L."""
     local = mi.warp.square_to_cosine_hemisphere(sampler.next_2d())
     ray = mi.Ray3f(si.p + n * surface_offset(si.p, ctx.view.ray_offset), mi.Frame3f(n).to_world(local))
+    if mi.is_spectral:
+        ray.wavelengths = si.wavelengths  # the camera path's: its radiance is a spectrum
     # Glossy bounces along the ray follow the render's seed, as the rest of the path.
     rng = streams.render_rng(sampler, dr.width(si.p))
     radiance, _ = trace_gather_rays(ctx.scene, ctx.view.gather_source, ray, rng, active)

@@ -24,6 +24,8 @@ from .continuation import choose_guides, continue_path
 from .direct import direct_at_vertex, emission_met
 from .estimators import caustic_irradiance, final_gather_ray, global_irradiance, total_irradiance
 from .reads import where_read
+from .. import spectra
+from ..spectra import from_rgb
 from .state import PathState
 from .vertex import Reads, Vertex
 
@@ -48,18 +50,20 @@ def indirect_at_vertex(ctx: PathContext, sampler, state: PathState, v: Vertex, r
     """``(caustic, indirect)``: the light that bounced before reaching the vertex's
     diffuse lobe (times the path's throughput): the caustic map's (0 where deferred)
     and the cache's or global map's (with a rough plastic's coat's share)."""
-    config, β = ctx.config, state.β
+    config, β, wavelengths = ctx.config, state.β, v.si.wavelengths
     if config.defer_caustics:
         _defer_caustic_read(state, v, reads)
         caustic = mi.Spectrum(0.0)
     else:
-        caustic = finite(β * reads.response * caustic_irradiance(ctx, v.si.p, v.n, state.depth,
-                                                                 reads.read_caustic), reads.read_caustic)
+        caustic_rgb = caustic_irradiance(ctx, v.si.p, v.n, state.depth, reads.read_caustic)
+        caustic = finite(β * reads.response * from_rgb(caustic_rgb, wavelengths), reads.read_caustic)
+    # (The maps and records hold linear sRGB: spectra.from_rgb at the path's wavelengths.)
     if config.gather_first:
         irradiance = total_irradiance(ctx, v.si, v.n, reads.trust, reads.cached, reads.covered)
     else:
         irradiance = global_irradiance(ctx, v.si.p, v.n, state.depth, reads.trust, reads.cached,
                                        reads.covered, gathered=reads.records_here)
+    irradiance = from_rgb(irradiance, wavelengths)
     if config.photon_map_gather:
         irradiance += final_gather_ray(ctx, sampler, v.si, v.n, reads.records_here)
     indirect = finite(β * reads.response * irradiance, reads.trust)
@@ -67,7 +71,8 @@ def indirect_at_vertex(ctx: PathContext, sampler, state: PathState, v: Vertex, r
         # The coat's share: once armed, light that reached this vertex straight from the
         # lights (and its caustics) and leaves by the coat is a caustic of the last
         # traced vertex, which read the map: only the records' bounced light is left.
-        reflected = dr.maximum(irradiance - dr.select(state.armed, reads.cached_direct, 0.0), 0.0)
+        armed_direct = from_rgb(dr.select(state.armed, reads.cached_direct, 0.0), wavelengths)
+        reflected = dr.maximum(irradiance - armed_direct, 0.0)
         indirect += finite(β * reads.coat_response * reflected, reads.coat_read)
     return caustic, indirect
 
@@ -128,7 +133,8 @@ def denoiser_guides(pi, ray, active, aovs) -> dict:
         return guides
     si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
     hit = active & si.is_valid()
-    guides["albedo"] = dr.select(hit, si.bsdf(ray).eval_diffuse_reflectance(si, hit), 0.0)
+    albedo = spectra.reflectance_to_rgb(si.bsdf(ray).eval_diffuse_reflectance(si, hit), si.wavelengths)
+    guides["albedo"] = dr.select(hit, albedo, 0.0)
     guides["normal"] = dr.select(hit, si.sh_frame.n, 0.0)
     return guides
 

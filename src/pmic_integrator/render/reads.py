@@ -182,7 +182,7 @@ def where_read(ctx: PathContext, state: PathState, v: Vertex) -> Reads:
         response = diffuse_response(v.bsdf, v.si, trust | read_caustic,
                                     azimuths=response_azimuths(config.leaning))
     coat_read = mi.Bool(False)
-    coat_response = mi.Color3f(0.0)
+    coat_response = mi.Spectrum(0.0)
     if config.coat_reads:
         coat_read, coat_response = _coat_read(v, from_records, covered, response)
         trusted_whole |= coat_read

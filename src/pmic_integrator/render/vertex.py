@@ -65,9 +65,9 @@ class Reads:
     cached_direct: mi.Color3f  #: the records' direct part of ``cached`` (coat reads)
     records_here: mi.Bool  #: first hit: the records serve this depth
     read_caustic: mi.Bool  #: reads the caustic map
-    response: mi.Color3f  #: the diffuse lobe's (or whole BSDF's) response
+    response: mi.Spectrum  #: the diffuse lobe's (or whole BSDF's) response
     coat_read: mi.Bool  #: a rough plastic's coat reads the records too
-    coat_response: mi.Color3f
+    coat_response: mi.Spectrum
     #: Final gather: a trusted vertex reads all its light from the cache, direct light
     #: included: only its other lobes need emitter samples.
     from_records: mi.Bool
