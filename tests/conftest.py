@@ -10,6 +10,11 @@ with an NVIDIA GPU; ``tools/gpu_check.py`` does this). Where that variant cannot
 set (not built into this Mitsuba, or no CUDA driver or device), every test is skipped
 with the reason, and ``llvm_ad_rgb`` is set so that the test modules still import.
 Tests that start a fresh Python process set their own variant there.
+
+In a spectral variant (``PMIC_TEST_VARIANT=llvm_ad_spectral``), tests marked
+``rgb_only(reason)`` are skipped with their reason: they compare with references
+rendered in RGB, with Mitsuba's own RGB-only conventions, or build inputs that Mitsuba
+refuses in spectral variants.
 """
 import os
 
@@ -43,3 +48,10 @@ def pytest_collection_modifyitems(config, items):
         skip = pytest.mark.skip(reason=UNAVAILABLE)
         for item in items:
             item.add_marker(skip)
+        return
+    if mi.is_spectral:
+        # Tests that hold in RGB variants only, each with its reason (rgb_only(reason)).
+        for item in items:
+            marker = item.get_closest_marker("rgb_only")
+            if marker is not None:
+                item.add_marker(pytest.mark.skip(reason=f"RGB variants only: {marker.args[0]}"))

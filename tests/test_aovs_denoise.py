@@ -36,6 +36,7 @@ def test_bad_aov_or_estimator_is_refused_by_name(param, value):
 # -------------------------------------------------------------------------------------
 # AOVs
 # -------------------------------------------------------------------------------------
+@pytest.mark.rgb_only("Mitsuba's aov integrator projects albedo under illuminant E in spectral variants (a wall of sRGB 0.886, 0.699, 0.666 reads 1.05, 0.66, 0.61); pmic's is under D65, the wall's own sRGB")
 def test_guides_equal_mitsubas_aov_integrator():
     """pmic's albedo and normal are exactly what Mitsuba's aov integrator gives path,
     so pmic + denoiser and path + denoiser are compared with the same guides."""
@@ -60,12 +61,16 @@ def test_radiance_parts_add_up_to_the_image():
     assert np.allclose(total, parts["color"], rtol=1e-4, atol=1e-5)
     for name in ("direct", "indirect", "caustic"):
         assert parts[name].mean() > 1e-3, name  # each part is really there
-        assert parts[name].min() >= 0.0
+        # (Spectral variants: one pixel's sRGB, from a few wavelengths, may fall outside
+        # the gamut, as path's do; its channels' means may not.)
+        lowest = parts[name].mean(axis=(0, 1)).min() if mi.is_spectral else parts[name].min()
+        assert lowest >= 0.0
     # A fraction of each pixel's samples (averaged by the film).
     assert 0.0 <= parts["coverage"].min() and parts["coverage"].max() <= 1.0
     assert parts["coverage"].mean() > 0.3
 
 
+@pytest.mark.rgb_only("compares bit for bit with Mitsuba's aov integrator's albedo (see test_guides_equal_mitsubas_aov_integrator)")
 def test_aovs_inside_mitsubas_aov_integrator():
     scene = mi.load_dict(cornell())
     nested = mi.load_dict({"type": "aov", "aovs": "albedo:albedo",
@@ -80,6 +85,7 @@ def test_aovs_inside_mitsubas_aov_integrator():
 # -------------------------------------------------------------------------------------
 # Denoising
 # -------------------------------------------------------------------------------------
+@pytest.mark.rgb_only('its reference was rendered in llvm_ad_rgb')
 def test_denoise_reduces_the_error_of_a_noisy_render():
     reference = scenes.load_reference("cornell_box", 128)
     scene = scenes.load_scene("cornell_box", 128, 2)
@@ -139,6 +145,7 @@ def test_cache_is_view_independent(estimator):
     assert "time_cache_view" not in pmic.stats
 
 
+@pytest.mark.rgb_only('its reference was rendered in llvm_ad_rgb')
 def test_final_gather_counts_caustics_once():
     """The caustic map is read at the traced vertex; light reaching it through the glass
     again along the path is not added (it would be +several % on the caustic floor)."""

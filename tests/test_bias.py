@@ -45,6 +45,12 @@ def path_mean(scene, spp=1024, **params):
     return luminance(mi.render(scene, integrator=mi.load_dict({"type": "path", **params}), spp=spp))
 
 
+#: What the spectral variants' sRGB store adds to a tolerance here (coloured walls'
+#: bounced light rebuilt as a smooth spectrum: measured -0.5 % on a plastic Cornell box,
+#: 0.982 against 0.987 in llvm_ad_rgb; a principled quadrant 0.976).
+SPECTRAL_STORE = 0.01 if mi.is_spectral else 0.0
+
+
 def ratio_to_path(scene_dict, spp=16, path_spp=1024, seeds=(0,), **params):
     """pmic's mean luminance over path's, on the pixels that do not see an emitter:
     at these sizes a light covers a few pixels whose anti-aliased edges, at 16 spp,
@@ -136,7 +142,8 @@ def test_a_principled_cornell_box_reads_the_cache_where_it_is_nearly_diffuse(rou
     lum_img, lum_ref = image[..., :3] @ LUMINANCE, reference[..., :3] @ LUMINANCE
     for rows in (slice(0, 16), slice(16, 32)):
         for cols in (slice(0, 16), slice(16, 32)):
-            assert masked_ratio(lum_img[rows, cols], lum_ref[rows, cols]) == pytest.approx(1.0, abs=0.02)
+            assert masked_ratio(lum_img[rows, cols], lum_ref[rows, cols]) == \
+                pytest.approx(1.0, abs=0.02 + SPECTRAL_STORE)
 
 
 @pytest.mark.parametrize("material", ["roughplastic", "plastic"])
@@ -145,7 +152,7 @@ def test_coated_walls_reflect_the_cosine_weighted_average(material):
     evaluated at the normal alone it overstated indirect light (before: +3 %)."""
     coat = {"type": material, "diffuse_reflectance": {"type": "rgb", "value": [0.8, 0.8, 0.8]}}
     scene = sb.cornell(floor={"bsdf": coat}, back={"bsdf": coat}, **{"large-box": {"bsdf": coat}})
-    assert ratio_to_path(scene) == pytest.approx(1.0, abs=0.02)
+    assert ratio_to_path(scene) == pytest.approx(1.0, abs=0.02 + SPECTRAL_STORE)
 
 
 def test_sparse_photons_in_a_room_lit_through_a_door():
@@ -260,6 +267,7 @@ def test_closed_box_standing_on_a_floor_stays_dark_inside():
     assert np.array(image).max() < 1e-3, np.array(image).max()
 
 
+@pytest.mark.rgb_only('traces rays built without wavelengths')
 def test_gather_rays_meeting_a_glossy_metal_principled_floor_follow_its_reflection():
     """Gather rays from a wall that meet a glossy metallic principled floor carry what
     Mitsuba's path carries along the same rays, within 10 %. Such a floor (its lobes
@@ -305,6 +313,7 @@ def test_envmap_exterior(rotate):
     assert ratio_to_path(sb.envmap_exterior(rotate), path_spp=1024) == pytest.approx(1.0, abs=0.02)
 
 
+@pytest.mark.rgb_only("Mitsuba refuses a NaN emitter's spectrum in spectral variants ('no probability mass')")
 def test_nan_emitter_costs_only_its_own_light():
     """One emitter with NaN radiance beside a normal one: the NaN samples must be
     dropped, not the whole camera sample (before: 16 % of path's image)."""
@@ -317,6 +326,7 @@ def test_nan_emitter_costs_only_its_own_light():
         pytest.approx(1.0, abs=0.03)
 
 
+@pytest.mark.rgb_only("Mitsuba refuses Inf texels' spectra in spectral variants")
 def test_inf_texels_touch_only_their_samples():
     """A texture with Inf and NaN texels on the back wall: only the samples reading them
     are lost (before: luminance 0.0 for Inf). Compared with path on the same texture
@@ -453,6 +463,7 @@ def test_a_bounded_max_depth_bounds_the_light_read_from_the_cache(max_depth):
     assert ratio == pytest.approx(1.0, abs=0.015)  # after: 0.993-1.000
 
 
+@pytest.mark.rgb_only('traces path.sample on rays built without wavelengths')
 @pytest.mark.parametrize("seed", [0, 1])
 def test_records_in_a_narrow_slot_hold_its_light(seed):
     """Records between two white blocks 0.1 apart (a lookup radius is 0.14): their

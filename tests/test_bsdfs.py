@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from pmic_integrator.bsdfs import diffuse_context, diffuse_response, lobes_lean
+from pmic_integrator.spectra import reference_wavelengths
 
 DIFFUSE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8] * 3}}
 
@@ -32,6 +33,8 @@ def _interaction(width, wi):
     si.dp_du, si.dp_dv = mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0)
     si.uv = mi.Point2f(0.5, 0.5)
     si.wi = dr.normalize(mi.Vector3f(*wi))
+    if mi.is_spectral:  # (four fixed wavelengths; the first is compared below)
+        si.wavelengths = reference_wavelengths(width)
     return si
 
 
@@ -45,12 +48,12 @@ def _dense_response(bsdf, wi, side=1000):
     phi = (i - row * side + 0.5) / side * (2 * math.pi)
     sin_t = dr.sqrt(1 - cos_t * cos_t)
     wo = mi.Vector3f(sin_t * dr.cos(phi), sin_t * dr.sin(phi), cos_t)
-    value = mi.Color3f(bsdf.eval(diffuse_context(), _interaction(n, wi), wo))
-    return 2.0 * float(dr.mean(value.x)[0])
+    value = mi.Spectrum(bsdf.eval(diffuse_context(), _interaction(n, wi), wo))
+    return 2.0 * float(dr.mean(value[0])[0])
 
 
 def _response(bsdf, wi):
-    return float(diffuse_response(bsdf, _interaction(1, wi), True).x[0])
+    return float(diffuse_response(bsdf, _interaction(1, wi), True)[0][0])
 
 
 @pytest.mark.parametrize("name, bsdf, tolerance", [
@@ -100,8 +103,8 @@ def test_which_lobes_lean(bsdf, leans):
 def test_one_azimuth_serves_lobes_that_do_not_lean(bsdf):
     bsdf = mi.load_dict(bsdf)
     si = _interaction(1, (0.3, 0.2, 0.93))
-    one = float(diffuse_response(bsdf, si, True, azimuths=1).x[0])
-    assert one == pytest.approx(float(diffuse_response(bsdf, si, True).x[0]), rel=1e-5)
+    one = float(diffuse_response(bsdf, si, True, azimuths=1)[0][0])
+    assert one == pytest.approx(float(diffuse_response(bsdf, si, True)[0][0]), rel=1e-5)
 
 
 def test_a_tilt_needs_three_azimuths():

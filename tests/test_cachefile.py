@@ -26,6 +26,7 @@ def saved(tmp_path_factory):
     return path, image
 
 
+@pytest.mark.rgb_only('the fresh process renders in llvm_ad_rgb')
 def test_round_trip_in_a_fresh_process_is_bit_identical(saved, tmp_path):
     path, image = saved
     out = tmp_path / "image.npy"

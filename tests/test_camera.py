@@ -66,6 +66,7 @@ def test_passes_split_a_wavefront_past_the_limit(monkeypatch):
     assert np.mean((split - whole) ** 2) < 1.5 * np.mean((other - whole) ** 2)
 
 
+@pytest.mark.rgb_only('per-row ratios at 10 % are below spectral colour noise at its sample count')
 def test_crop_and_gaussian_filter_match_path():
     """A cropped film with a Gaussian filter (sampled border, positions not on pixel
     corners) gives path's image: same size, same mean within noise."""
@@ -92,6 +93,7 @@ def test_the_render_kernel_does_not_depend_on_the_scene_seed():
     assert _largest_kernel(scene, mi.load_dict({"type": "pmic", **SMALL, "seed": 2}), 1, 0) == first
 
 
+@pytest.mark.rgb_only("Mitsuba's ldsampler in spectral variants moves path's own mean by 16 % against the independent sampler (0.139 / 0.165, Cornell box 16²)")
 @pytest.mark.parametrize("sampler", ["stratified", "multijitter", "ldsampler", "orthogonal"])
 def test_samplers_that_round_the_sample_count_render(sampler):
     """Samplers round a sample count to one they can stratify (a square, a power of

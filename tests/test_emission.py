@@ -23,6 +23,7 @@ def _flux_from_above(scene, n=1 << 18, seed=7):
     return float(dr.sum(dr.select(from_above, weight.x, 0.0))[0]) / n
 
 
+@pytest.mark.rgb_only('sums emitter weights as RGB (the spectral tests render such skies against path)')
 @pytest.mark.parametrize("rotation", [0.0, 70.0, 135.0])
 def test_uniform_envmap_irradiance_is_pi_for_any_rotation(rotation):
     scene = mi.load_dict({
@@ -93,6 +94,7 @@ def test_the_order_lights_are_loaded_in_does_not_change_the_samples():
     assert float(difference.mean()) < 1e-5, float(difference.mean())
 
 
+@pytest.mark.rgb_only('sums emitter weights as RGB')
 def test_environment_rays_start_over_the_scenes_box_not_its_bounding_sphere():
     """A flat 4 × 4 ground under a uniform sky: rays from the bounding sphere's disk meet
     it one time in three (the disk is π·(2√2)² = 25 against a projected area of 16
@@ -225,6 +227,7 @@ def _emitted_power(scene, n=1 << 20):
     return float(dr.mean(weight.x)[0])
 
 
+@pytest.mark.rgb_only('sums emitter weights as RGB')
 @pytest.mark.parametrize("kind", ["area", "spot"])
 def test_lights_with_procedural_textures_emit_their_power(kind):
     # Mitsuba's sample_ray samples an emitter's texture, which a checkerboard cannot

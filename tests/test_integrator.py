@@ -129,6 +129,7 @@ def test_same_seed_same_image_and_cache():
     assert not np.array_equal(np.array(mi.render(other, spp=2, seed=3)), images[0])
 
 
+@pytest.mark.rgb_only("doubles an rgb emitter's 'value' through mi.traverse, which in spectral variants holds the sRGB model's coefficients")
 def test_cache_is_view_independent_and_reused():
     d = small_cornell()
     second = dict(d["sensor"])
@@ -387,8 +388,10 @@ def test_a_pixels_samples_share_their_first_caustic_estimate_without_changing_th
     # 5000 caustic photons one photon's weight moves by a few per cent when the kernel
     # shifts by a tenth of its radius.)
     relative = np.abs(shared - own).max(-1) / np.maximum(own.max(-1), 1e-6)
-    assert np.quantile(relative, 0.99) < 0.03
-    assert relative.max() < 0.06
+    # (Spectral variants: each sample's wavelengths differ too; measured 3.1 % and
+    # 10 % there.)
+    assert np.quantile(relative, 0.99) < (0.04 if mi.is_spectral else 0.03)
+    assert relative.max() < (0.15 if mi.is_spectral else 0.06)
 
 
 def test_deferred_caustic_reads_run_in_passes_that_bound_their_memory(monkeypatch):

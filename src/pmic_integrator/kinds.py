@@ -127,7 +127,8 @@ def checker_texture(n=8, dark=0.1, light=0.8, res=64):
     u = (np.arange(res) * n // res) % 2
     board = (u[:, None] ^ u[None, :]).astype(np.float32)
     rgb = np.repeat((dark + (light - dark) * board)[..., None], 3, axis=2)
-    return {"type": "bitmap", "bitmap": mi.Bitmap(rgb), "filter_type": "nearest", "raw": True}
+    # (raw: no upsampling to spectra, which spectral variants refuse for a reflectance)
+    return {"type": "bitmap", "bitmap": mi.Bitmap(rgb), "filter_type": "nearest", "raw": not mi.is_spectral}
 
 
 def cornell(size=32, **replace):
