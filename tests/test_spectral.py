@@ -153,3 +153,13 @@ def test_one_process_renders_rgb_then_spectral_then_rgb_again(spectral_variant):
     spectral = np.array(mi.render(mi.load_dict(kinds.pmic_cornell(16)), spp=4))
     assert np.isfinite(spectral).all() and spectral.mean() > 0
     assert np.array_equal(rgb_render(), first)
+
+
+def test_a_scene_files_reference_is_kept_apart_from_the_rgb_one(spectral_variant):
+    """pmic-compare keeps path references of scene files under a key of the scene: a
+    spectral render must not be compared with the RGB variant's reference."""
+    from pmic_integrator.reference import reference_key
+
+    spectral = reference_key(mi.load_dict(kinds.cornell(16)))
+    mi.set_variant("llvm_ad_rgb")
+    assert reference_key(mi.load_dict(kinds.cornell(16))) != spectral

@@ -88,7 +88,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--output", type=Path, default=Path("pmic-output"),
                         help="folder for the EXR/PNG images and results.json (default: pmic-output)")
     parser.add_argument("--variant", default="llvm_ad_rgb",
-                        help="Mitsuba variant: llvm_ad_rgb (CPU) or cuda_ad_rgb (default: llvm_ad_rgb)")
+                        help="Mitsuba variant: llvm_ad_rgb (CPU), llvm_ad_spectral, cuda_ad_rgb "
+                             "(default: llvm_ad_rgb; the bundled scenes' references are RGB "
+                             "renders: in a spectral variant compare on a scene file, whose "
+                             "reference is rendered in that variant)")
     return parser
 
 

@@ -140,6 +140,8 @@ def reference_key(scene, sensor: int = 0, integrator: dict | None = None) -> str
     digest.update(repr((film.class_name(), list(film.size()), film.rfilter().class_name(),
                         film.rfilter().radius())).encode())
     digest.update(json.dumps(integrator or {}, sort_keys=True).encode())
+    if mi.is_spectral:  # (another image than the RGB variants' of the same scene)
+        digest.update(b"spectral")
     return digest.hexdigest()
 
 
