@@ -747,3 +747,23 @@ def test_a_room_on_a_large_sunlit_ground_receives_photons_through_its_windows():
     x, y, z = position if position.shape[0] == 3 else position.T
     inside = (np.abs(x) < 4) & (np.abs(z) < 3) & (y > -0.005) & (y < 3)
     assert inside.sum() >= 1000
+
+
+def test_the_renders_cache_decisions_are_made_once_in_the_cache_stage(monkeypatch):
+    """Whether guiding pays (and whether a sky is seen, first reads may pay) is read
+    back from the device once, when the cache is built (RecordIndex.remembered): each
+    render then starts its camera pass without a host read, which on a GPU is a
+    synchronisation (benchmarks/kernel_report.py: the render stage's element reads 3 -> 1)."""
+    from pmic_integrator import kinds
+    from pmic_integrator.cache import RecordIndex
+
+    scene = mi.load_dict(kinds.pmic_cornell(16))
+    first = np.array(mi.render(scene, spp=2))
+    index = scene.integrator().prepared.index
+    assert any(key[0] == "guiding_pays" for key in index.__dict__["_remembered"])
+
+    def recomputed(self):
+        raise AssertionError("guiding_pays computed again at a render")
+
+    monkeypatch.setattr(RecordIndex, "_guiding_pays", recomputed)
+    assert np.array_equal(np.array(mi.render(scene, spp=2)), first)

@@ -1206,7 +1206,20 @@ class RecordIndex:
         emitter samples of the sky at the points they guide may follow what it saw."""
         if self.records.sky_guide is None or self.records.count == 0:
             return False
-        return bool(dr.any(self.sees_sky(dr.arange(mi.UInt32, self.records.count))))
+        return self.remembered("sky_guiding_pays", lambda: bool(
+            dr.any(self.sees_sky(dr.arange(mi.UInt32, self.records.count)))))
+
+    def remembered(self, name: str, compute):
+        """``compute()``, once per records of this index: a per-render decision read
+        back from the device (a host read: a synchronisation on a GPU) is made at the
+        first render and kept for the next ones (a fly-through's frames, a view's
+        passes). Kept beside the fields (not copied by ``dataclasses.replace``), keyed
+        by the records' identity."""
+        memo = self.__dict__.setdefault("_remembered", {})
+        key = (name, id(self.records))
+        if key not in memo:
+            memo[key] = compute()
+        return memo[key]
 
     def sees_sky(self, record: mi.UInt32, active=True) -> mi.Bool:
         """Whether ``record``'s gather saw the sky through an opening."""
@@ -1218,6 +1231,9 @@ class RecordIndex:
         worth its lookups (:data:`GUIDE_MIN_RECORDS`)? A function of the cache only."""
         if not self.guides:
             return False
+        return self.remembered("guiding_pays", self._guiding_pays)
+
+    def _guiding_pays(self) -> bool:
         bounced = mi.luminance(self.records.irradiance)
         direct = self.light_direct
         total = bounced if direct is None else bounced + mi.luminance(direct)

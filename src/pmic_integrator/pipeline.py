@@ -20,7 +20,7 @@ import math
 import sys
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import drjit as dr
 import mitsuba as mi
@@ -669,6 +669,12 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
                                            index.records.radius * index.max_error,
                                            index.records.irradiance + index.light_direct)
     stats["records"] = index.records.count
+    # The render's per-cache decisions (guiding pays, a sky is seen, first reads may
+    # pay: reads back from the device) made here, once: renders then start without
+    # a host read (RecordIndex.remembered; benchmarks/kernel_report.py).
+    from .render.config import PathConfig
+
+    PathConfig.of(settings, replace(prepared, index=index), own_render=True)
     progress.done("cache", f"{index.records.count} records")
     return index, stats
 

@@ -86,9 +86,13 @@ def any_first_reads(index, lookup_radius: float) -> bool:
     estimator is the final gather and skips the first vertices' lookups (5-15 % of
     the render where no record qualified)."""
     r = index.records
-    even = index.bounce_variance() <= FIRST_READ_MAX_VARIANCE
-    return bool(dr.any(_reach_spans_photons(r.radius, index, lookup_radius) & even &
-                       (mi.luminance(r.irradiance) > 0))[0])
+
+    def any_qualifies():
+        even = index.bounce_variance() <= FIRST_READ_MAX_VARIANCE
+        return bool(dr.any(_reach_spans_photons(r.radius, index, lookup_radius) & even &
+                           (mi.luminance(r.irradiance) > 0))[0])
+
+    return index.remembered(f"any_first_reads {lookup_radius!r}", any_qualifies)
 
 
 def first_read_pays(ctx: PathContext, v: Vertex, active, radius):
