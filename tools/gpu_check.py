@@ -62,9 +62,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 #: The default test subset: fast files first (Dr.Jit helpers, hash grids against brute
 #: force, the furnace), then AOVs and the denoiser (OptiX on CUDA), then the images of
-#: the bundled scenes against their references.
+#: the bundled scenes against their references, and pmic against path in every JIT
+#: variant the machine has (tests/test_variants.py: cuda_ad_spectral where the wheel
+#: keeps it, ``--keep-variants``).
 TESTS = ("tests/test_jit_helpers.py", "tests/test_hashgrid.py", "tests/test_furnace.py",
-         "tests/test_aovs_denoise.py", "tests/test_images.py")
+         "tests/test_variants.py", "tests/test_aovs_denoise.py", "tests/test_images.py")
 #: Seconds each step may take at most (then cut to what the budget has left).
 CAPS = {"environment": 60, "test_file": 150, "tests": 240, "error_vs_time": 150, "kernel_report": 90}
 #: Wheels a machine without PyPI needs beside its own packages (numpy, scipy,
