@@ -163,3 +163,15 @@ def test_a_scene_files_reference_is_kept_apart_from_the_rgb_one(spectral_variant
     spectral = reference_key(mi.load_dict(kinds.cornell(16)))
     mi.set_variant("llvm_ad_rgb")
     assert reference_key(mi.load_dict(kinds.cornell(16))) != spectral
+
+
+def test_a_subclass_of_the_integrator_class_can_be_made():
+    """(The per-variant class finds Mitsuba's base in its MRO, not as its direct base.)"""
+    from pmic_integrator.integrator import integrator_class
+
+    class Mine(integrator_class()):
+        pass
+
+    props = mi.Properties()
+    props["global_photons"] = 1000
+    assert Mine(props).settings.global_photons == 1000

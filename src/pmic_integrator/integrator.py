@@ -219,7 +219,9 @@ class _PMICMethods:
         # Parsed before Mitsuba's base class reads its own parameters (hide_emitters),
         # so that every bad parameter gets pmic's message.
         settings = Settings.parse(props)
-        type(self).__base__.__init__(self, props)  # (the variant's SamplingIntegrator)
+        # (The variant's SamplingIntegrator: integrator_class makes one class per variant,
+        # and a user's subclass of it may stand between.)
+        next(c for c in type(self).__mro__ if c.__module__.startswith("mitsuba")).__init__(self, props)
         #: Every parameter, parsed and checked once (ValueError naming a bad one).
         self.settings = settings
         self.stats: dict = {}
