@@ -31,14 +31,17 @@ from pmic_integrator import gather, metrics
 
 
 #: What each mode's row is called in the table.
-MODES = {"on": "on", "off": "off (leaks)", "fill": "on; none found: batch mean"}
+MODES = {"on": "on; unanswered: traced", "zero": "on; unanswered: 0", "off": "off (leaks); none found: 0",
+         "fill": "on; none found: batch mean, hidden: 0"}
 
 
 def render_counting(scene, spp: int, mode: str) -> tuple[np.ndarray, dict]:
     """pmic's image at defaults, and the records' lookups counted by outcome. ``mode``:
-    "on" (as pmic runs), "off" (every found photon is read: no visibility test), or
-    "fill" (as "on", but lookups that find no photon read the mean irradiance of the
-    batch's seen ones instead of 0: a probe of what those lookups are worth)."""
+    "on" (as pmic runs: lookups no photon answers, hidden or not found, are answered by
+    a traced bounce, ``gather.TRACE_UNANSWERED``), "zero" (they read 0, as before),
+    "off" (every found photon is read: no visibility test; none found: 0), or "fill"
+    (lookups that find no photon read the mean irradiance of the batch's seen ones,
+    hidden ones 0: a probe of what those lookups are worth)."""
     counts = {"seen": 0, "hidden": 0, "not found": 0}
     original, original_of = gather.GatherSource._visible, gather.GatherSource.irradiance_of
     last = {}
@@ -53,23 +56,25 @@ def render_counting(scene, spp: int, mode: str) -> tuple[np.ndarray, dict]:
         last.update(found=found, seen=seen)
         return seen
 
-    def filled(self, scene, p, n, without_delta=False, caustic=None):
+    def filled(self, scene, p, n, without_delta=False, caustic=None, with_seen=False):
         last.clear()
-        value = original_of(self, scene, p, n, without_delta, caustic)
-        if not last:
-            return value
-        seen = last["seen"]
-        count = max(int(dr.count(seen)[0]), 1)
-        mean = mi.Color3f(*(float(dr.sum(dr.select(seen, value[i], 0.0))[0]) / count for i in range(3)))
-        return dr.select(last["found"], value, mean)
+        value, seen = original_of(self, scene, p, n, without_delta, caustic, with_seen=True)
+        if last:
+            count = max(int(dr.count(seen)[0]), 1)
+            mean = mi.Color3f(*(float(dr.sum(dr.select(seen, value[i], 0.0))[0]) / count for i in range(3)))
+            value = dr.select(last["found"], value, mean)
+        return (value, seen) if with_seen else value
 
+    traced = gather.TRACE_UNANSWERED
     gather.GatherSource._visible = counted
+    gather.TRACE_UNANSWERED = mode == "on"
     if mode == "fill":
         gather.GatherSource.irradiance_of = filled
     try:
         image = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "pmic"}), spp=spp))
     finally:
         gather.GatherSource._visible, gather.GatherSource.irradiance_of = original, original_of
+        gather.TRACE_UNANSWERED = traced
     return image[..., :3], counts
 
 
@@ -78,6 +83,7 @@ def main(argv=None) -> int:
     parser.add_argument("--scenes", nargs="+", default=["white_room", "sponza"])
     parser.add_argument("--spp", type=int, default=8)
     parser.add_argument("--stem", default="gather_visibility")
+    parser.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
     args = parser.parse_args(argv)
     mi.set_variant(common.VARIANT)
     rows = []
@@ -87,7 +93,7 @@ def main(argv=None) -> int:
             print(f"{name}: no reference (benchmarks/public_references.py), skipped")
             continue
         ref, noise, _ = reference
-        for mode in ("on", "off", "fill"):
+        for mode in args.modes:
             image, counts = render_counting(common.load_public(name), args.spp, mode)
             total = max(sum(counts.values()), 1)
             row = {"scene": name, "visibility test": MODES[mode],

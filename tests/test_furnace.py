@@ -64,3 +64,39 @@ def test_furnace_radiance_is_exact_at_any_scale(method, scale):
     # each pixel's colour comes from 16 wavelengths, a noise of its own: 0.8.)
     if not mi.is_spectral:
         assert np.abs(image / RADIANCE - 1).max() < 0.25
+
+
+@pytest.mark.rgb_only("traces rays built without wavelengths")
+@pytest.mark.parametrize("traced", [True, False])
+def test_lookups_no_photon_answers_are_answered_by_a_traced_bounce(monkeypatch, traced):
+    """A record's gather ray whose hit no photon answers (none near, or the nearest
+    hidden across a wall) traces one more bounce (gather.TRACE_UNANSWERED): E = π L
+    from one cosine ray that counts the emission it meets and reads the photons where
+    it lands. Here every lookup of the batch on the x > 0 half of the furnace is
+    hidden (the traced bounces' own lookups are not): the rays must still carry
+    ρ L = 1, as every photon answered; reading 0 there they carried 0.5."""
+    from pmic_integrator import _jit, gather, pipeline
+    from pmic_integrator.settings import Settings
+
+    scene = furnace()
+    props = mi.Properties()
+    props["global_photons"] = 100_000
+    source = pipeline.prepare(scene, Settings.parse(props)).gather_source
+    original = gather.GatherSource._visible
+
+    def half_hidden(self, scene, p, n, position, found):
+        seen = original(self, scene, p, n, position, found)
+        return seen if dr.flag(dr.JitFlag.SymbolicScope) else seen & (p.x <= 0)
+
+    monkeypatch.setattr(gather.GatherSource, "_visible", half_hidden)
+    monkeypatch.setattr(gather, "TRACE_UNANSWERED", traced)
+    count = 1 << 16
+    rng = np.random.default_rng(3)
+    origin = mi.Point3f(*(rng.uniform(-0.3, 0.3, (3, count)).astype(np.float32)))
+    direction = mi.warp.square_to_uniform_sphere(mi.Point2f(*(rng.random((2, count)).astype(np.float32))))
+    radiance, _ = gather.gather_radiance(scene, source, mi.Ray3f(origin, direction), _jit.rng(count, 1))
+    mean = float(np.mean(np.array(radiance)))
+    if traced:
+        assert mean == pytest.approx(RHO * RADIANCE, rel=0.02)
+    else:
+        assert mean == pytest.approx(0.5 * RHO * RADIANCE, rel=0.05)  # (what it was)

@@ -80,6 +80,9 @@ GATHER_ROULETTE = True
 #: batches run as one loop: the split costs a few ms of tracing and launches whatever
 #: the batch (6.8k rays: 12-16 ms as one loop, 15-19 ms split).
 SPLIT_GATHER_MIN_RAYS = 1 << 14
+#: The records' gathers answer lookups that no photon answers with one more traced
+#: bounce (:func:`_trace_unanswered`), not with 0.
+TRACE_UNANSWERED = True
 
 def stratified_directions(strata_theta: int, strata_phi: int, sample_index: mi.UInt32,
                           u1: mi.Float, u2: mi.Float):
@@ -314,7 +317,7 @@ class GatherSource:
         return dr.select(self._visible(scene, p, n, position, found), result, 0.0)
 
     def irradiance_of(self, scene: mi.Scene, p: mi.Point3f, n: mi.Vector3f,
-                      without_delta: bool = False, caustic=None) -> mi.Color3f:
+                      without_delta: bool = False, caustic=None, with_seen: bool = False):
         """:meth:`irradiance_at` for every lane of an evaluated batch (not inside a
         symbolic loop): the same photons and values, but each wider step searches only
         the queries that the narrower ones left without a photon, gathered together.
@@ -325,7 +328,7 @@ class GatherSource:
         count = dr.width(p)
         result = dr.zeros(mi.Color3f, count)
         if self.photons.count == 0 or count == 0:
-            return result
+            return (result, dr.zeros(mi.Bool, count)) if with_seen else result
         position = dr.zeros(mi.Point3f, count)
         found = dr.zeros(mi.Bool, count)
         pending = dr.arange(mi.UInt32, count)
@@ -341,7 +344,9 @@ class GatherSource:
             pending = dr.gather(mi.UInt32, pending, dr.compress(~hit))
             if not dr.width(pending):
                 break
-        return dr.select(self._visible(scene, p, n, position, found), result, 0.0)
+        seen = self._visible(scene, p, n, position, found)
+        result = dr.select(seen, result, 0.0)
+        return (result, seen) if with_seen else result
 
 
 @dataclass
@@ -407,6 +412,18 @@ class GatherLookup:
                             dr.gather(mi.Spectrum, self.wavelengths, lanes),
                             lanes=mi.UInt32(lanes))
 
+    @staticmethod
+    def joined(parts: list) -> "GatherLookup":
+        """The lookups of ``parts`` (all asked for) one after the other."""
+        first = parts[0]
+        return GatherLookup(mask=concat([p.mask for p in parts], mi.Bool),
+                            p=concat([p.p for p in parts], mi.Point3f),
+                            n=concat([p.n for p in parts], mi.Vector3f),
+                            weight=concat([p.weight for p in parts], mi.Spectrum),
+                            caustic=None if first.caustic is None else concat([p.caustic for p in parts], mi.Bool),
+                            wavelengths=None if first.wavelengths is None else
+                            concat([p.wavelengths for p in parts], mi.Spectrum))
+
     def write(self, asked: "GatherLookup", slot: mi.UInt32) -> None:
         """Store the lookups ``asked`` for at ``slot`` of these arrays (where asked)."""
         dr.scatter(self.mask, asked.mask, slot, asked.mask)
@@ -420,10 +437,11 @@ class GatherLookup:
 
 
 def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, sample_delta: bool,
-                   near_distance: mi.Float):
+                   near_distance: mi.Float, emission: bool = False):
     """One vertex of the gather rays of ``walk`` (see :func:`trace_gather_rays`): returns
     the walk past it and the photon lookups it asks for (:class:`GatherLookup`), which
-    the caller answers in place or later."""
+    the caller answers in place or later. ``emission``: some walk may count emission
+    (``count_emission``) though the source's switches would not (:func:`_trace_unanswered`)."""
     ray, rng, throughput, bounce = walk.ray, walk.rng, walk.throughput, walk.bounce
     radiance, near_bounces, crossed = mi.Spectrum(walk.radiance), walk.near_bounces, walk.crossed
     ctx_specular = non_diffuse_context()
@@ -431,7 +449,7 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
     caustics = source.caustics_by_gathering
     near_on = source.near_hit_distance > 0
     si = scene.ray_intersect(ray, walk.active)
-    if caustics or near_on or source.crossing or source.inseparable:
+    if emission or caustics or near_on or source.crossing or source.inseparable:
         # Light reaching the record through delta/glossy bounces (no caustic map) or
         # through an inseparable BSDF, or reaching a near bounce's point past its
         # emitter sample.
@@ -539,6 +557,49 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
     return walk, asked
 
 
+def _answer_lookups(scene: mi.Scene, source: GatherSource, lookups: "GatherLookup", states: mi.UInt64,
+                    sample_delta: bool) -> mi.Spectrum:
+    """What each of ``lookups`` (all asked for) adds to its ray's radiance: its weight
+    times the irradiance of the nearest photon it sees, or, where it sees none (none
+    near enough, or the nearest across a wall: :meth:`GatherSource.irradiance_of`), a
+    traced answer (:func:`_trace_unanswered`; not for near hits' caustic reads, whose
+    other light their emitter sample and continuation carry). ``states``: each
+    lookup's random state."""
+    irradiance, seen = source.irradiance_of(scene, lookups.p, lookups.n, without_delta=sample_delta,
+                                            caustic=lookups.caustic, with_seen=True)
+    reflected = lookups.reflected(irradiance)
+    if not TRACE_UNANSWERED:
+        return reflected
+    unanswered = ~seen if lookups.caustic is None else ~seen & ~lookups.caustic
+    lanes = dr.compress(unanswered)
+    if dr.width(lanes):
+        traced = _trace_unanswered(scene, source, lookups.select(lanes),
+                                   dr.gather(mi.UInt64, states, lanes), sample_delta)
+        dr.scatter(reflected, traced, lanes)
+    return reflected
+
+
+def _trace_unanswered(scene: mi.Scene, source: GatherSource, lookups: "GatherLookup", states: mi.UInt64,
+                      sample_delta: bool) -> mi.Spectrum:
+    """For lookups that no photon answers: the irradiance the photon would have held,
+    from one cosine-distributed ray (E = π L) that counts the emission it meets first
+    (a photon's irradiance holds the direct light of area lights and skies; a delta
+    light's the walk sampled at the lookup already) and reads the photons where it
+    lands. Measured in docs/tuning.md ("Lookups no photon answers")."""
+    lanes = dr.width(lookups.p)
+    rng = mi.PCG32(size=lanes, initstate=states, initseq=dr.arange(mi.UInt64, lanes))
+    local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(rng.next_float32(), rng.next_float32()))
+    origin = dr.zeros(mi.Interaction3f, lanes)
+    origin.p, origin.n = lookups.p, lookups.n
+    if mi.is_spectral:
+        origin.wavelengths = lookups.wavelengths
+    ray = origin.spawn_ray(mi.Frame3f(lookups.n).to_world(local))
+    walk = GatherWalk.start(ray, rng, True)
+    walk.count_emission = dr.full(mi.Bool, True, lanes)
+    walk = _walk_on(scene, source, walk, sample_delta, emission=True)
+    return finite(lookups.weight * walk.radiance * math.pi, True)
+
+
 #: A gather ray's vertices: delta/glossy bounces, near-hit bounces and the last hit.
 GATHER_VERTICES = GATHER_SPECULAR_BOUNCES + NEAR_HIT_BOUNCES + 1
 
@@ -579,14 +640,15 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
     return walk.radiance, walk.distance
 
 
-def _walk_on(scene: mi.Scene, source: GatherSource, walk: GatherWalk, sample_delta: bool) -> GatherWalk:
+def _walk_on(scene: mi.Scene, source: GatherSource, walk: GatherWalk, sample_delta: bool,
+             emission: bool = False) -> GatherWalk:
     """``walk`` to its end in one symbolic loop, each vertex's photon lookups answered
     in place. (``dr.while_loop`` with the state named: ``@dr.syntax`` traces a loop's
     body twice to find its state, and this body holds five nested searches.)"""
     near_distance = opaque_float(source.near_hit_distance)
 
     def vertex(walk):
-        walk, asked = _gather_vertex(scene, source, walk, sample_delta, near_distance)
+        walk, asked = _gather_vertex(scene, source, walk, sample_delta, near_distance, emission)
         irradiance = source.irradiance_at(scene, asked.p, asked.n, asked.mask,
                                           without_delta=sample_delta, caustic=asked.caustic)
         walk.radiance = walk.radiance + asked.reflected(irradiance)
@@ -659,22 +721,22 @@ def gather_radiance(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f, rng: m
     parts = [part for part in (first, later) if part is not None and dr.width(part.lanes)]
     if not parts:
         return radiance, walk.distance
-    caustic = None if asked.caustic is None else concat([part.caustic for part in parts], mi.Bool)
-    irradiance = source.irradiance_of(scene, concat([part.p for part in parts], mi.Point3f),
-                                      concat([part.n for part in parts], mi.Vector3f),
-                                      without_delta=sample_delta, caustic=caustic)
-    dr.eval(irradiance)
+    # Each lookup's random stream for a traced answer: its ray's, after the walk.
+    states = [dr.gather(mi.UInt64, walk.rng.state, first.lanes) if part is first else
+              dr.gather(mi.UInt64, rest.rng.state, later.lanes // GATHER_VERTICES) for part in parts]
+    reflected = _answer_lookups(scene, source, GatherLookup.joined(parts), concat(states, mi.UInt64),
+                                sample_delta)
+    dr.eval(reflected)
     # The sums below add each ray's lookups in the order of its vertices, whatever the
     # order of the threads.
     done = dr.width(first.lanes)
     if done:
-        dr.scatter_add(radiance, first.reflected(dr.gather(mi.Color3f, irradiance,
-                                                           dr.arange(mi.UInt32, done))), first.lanes)
+        dr.scatter_add(radiance, dr.gather(mi.Spectrum, reflected, dr.arange(mi.UInt32, done)), first.lanes)
     if later is not None and dr.width(later.lanes):
         count = dr.width(later.lanes)
-        part = dr.gather(mi.Color3f, irradiance, dr.arange(mi.UInt32, count) + opaque_u32(done))
+        part = dr.gather(mi.Spectrum, reflected, dr.arange(mi.UInt32, count) + opaque_u32(done))
         by_slot = dr.zeros(mi.Spectrum, dr.width(going) * GATHER_VERTICES)
-        dr.scatter(by_slot, later.reflected(part), later.lanes)
+        dr.scatter(by_slot, part, later.lanes)
         dr.eval(by_slot)
         first_slot = dr.arange(mi.UInt32, dr.width(going)) * GATHER_VERTICES
         total = dr.zeros(mi.Spectrum, dr.width(going))
