@@ -81,7 +81,8 @@ GATHER_ROULETTE = True
 #: the batch (6.8k rays: 12-16 ms as one loop, 15-19 ms split).
 SPLIT_GATHER_MIN_RAYS = 1 << 14
 #: The records' gathers answer lookups that no photon answers with one more traced
-#: bounce (:func:`_trace_unanswered`), not with 0.
+#: bounce (:func:`_trace_unanswered`), not with 0; their batches then take the split
+#: path whatever their size (the one loop answers lookups in place).
 TRACE_UNANSWERED = True
 
 def stratified_directions(strata_theta: int, strata_phi: int, sample_index: mi.UInt32,
@@ -697,11 +698,12 @@ def gather_radiance(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f, rng: m
     a Cornell box, 30-60 % in a room with a glossy floor) finish in one symbolic loop
     over those rays only, writing their lookups to slots of their own. (Every vertex
     evaluated on its own cost more than it saved: each is a few ms of tracing and
-    launches, for a few hundred rays.) Batches under :data:`SPLIT_GATHER_MIN_RAYS`
-    rays run as one loop.
+    launches, for a few hundred rays.) Without :data:`TRACE_UNANSWERED`, batches under
+    :data:`SPLIT_GATHER_MIN_RAYS` rays run as one loop.
 
     Returns ``(radiance, distance)``."""
-    if dr.width(ray.o) < SPLIT_GATHER_MIN_RAYS:
+    if dr.width(ray.o) < SPLIT_GATHER_MIN_RAYS and not TRACE_UNANSWERED:
+        # (One loop answers its lookups in place: it cannot trace the unanswered ones.)
         return trace_gather_rays(scene, source, ray, rng, mi.Bool(True), sample_delta)
     near_distance = opaque_float(source.near_hit_distance)
     walk = GatherWalk.start(ray, rng, True)
