@@ -15,7 +15,7 @@ import mitsuba as mi
 import numpy as np
 
 from ._jit import ONE_MINUS_EPSILON, finite
-from .spectra import channel_mean, reference_wavelengths
+from .spectra import channel_mean, reference_wavelengths, spread
 
 #: Outgoing directions at which :func:`diffuse_response` evaluates the lobes: the
 #: response is (1/π) ∫ f(wo) cos θ dω over the hemisphere, integrated in cos θ (uniform
@@ -167,10 +167,8 @@ def _probe_interactions() -> mi.SurfaceInteraction3f:
     once per scene: incident directions spread over the hemisphere, texture
     coordinates over the unit square."""
     lanes = MASK_PROBE_LANES
-    k = dr.arange(mi.Float, lanes)
-    u = (k + 0.5) / lanes
-    v = k * 0.6180339887 + 0.5
-    v = v - dr.floor(v)
+    u = (dr.arange(mi.Float, lanes) + 0.5) / lanes
+    v = spread(lanes)
     si = dr.zeros(mi.SurfaceInteraction3f, lanes)
     si.n = mi.Vector3f(0.0, 0.0, 1.0)
     si.sh_frame = mi.Frame3f(si.n)

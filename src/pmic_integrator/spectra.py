@@ -38,11 +38,6 @@ BASIS_KNOTS = 48
 PARTITION_WEIGHT = 1e3
 
 
-def spectral() -> bool:
-    """True in a spectral variant (polarised ones are refused at registration)."""
-    return bool(mi.is_spectral)
-
-
 def channel_mean(value) -> mi.Float:
     """The mean of a spectrum's channels (three in RGB, four wavelengths in spectral)."""
     if not mi.is_spectral:
@@ -61,17 +56,18 @@ def from_rgb(rgb, wavelengths) -> mi.Spectrum:
     """The spectrum at ``wavelengths`` of stored linear sRGB ``rgb`` (see the module)."""
     if not mi.is_spectral:
         return rgb
-    table, step = _basis_table(mi.variant())
+    channels = _basis_table(mi.variant())
     rgb = mi.Color3f(rgb)
     out = []
     for i in range(len(wavelengths)):
-        x = dr.clip((wavelengths[i] - LAMBDA_MIN) / step, 0.0, table.size - 1.001)
+        # (The table holds one value per nanometre from LAMBDA_MIN.)
+        x = dr.clip(wavelengths[i] - LAMBDA_MIN, 0.0, LAMBDA_MAX - LAMBDA_MIN - 0.001)
         k = mi.UInt32(x)
         t = x - mi.Float(k)
         value = mi.Float(0.0)
         for c in range(3):
-            lo = dr.gather(mi.Float, table.channels[c], k)
-            hi = dr.gather(mi.Float, table.channels[c], k + 1)
+            lo = dr.gather(mi.Float, channels[c], k)
+            hi = dr.gather(mi.Float, channels[c], k + 1)
             value += rgb[c] * dr.lerp(lo, hi, t)
         out.append(value)
     return mi.Spectrum(*out)
@@ -135,15 +131,9 @@ def reference_wavelengths(lanes: int):
     return mi.Spectrum(*[dr.full(mi.Float, w, lanes) for w in (450.0, 520.0, 580.0, 640.0)])
 
 
-class _Table:
-    def __init__(self, channels, size):
-        self.channels = channels
-        self.size = size
-
-
 @functools.lru_cache(maxsize=None)
-def _basis_table(variant: str):
-    """``(table, step)``: D65 times each channel's basis spectrum, per nanometre."""
+def _basis_table(variant: str) -> list:
+    """D65 times each channel's basis spectrum, one value per nanometre from LAMBDA_MIN."""
     lam = np.arange(LAMBDA_MIN, LAMBDA_MAX + 0.5, 1.0)
     response, d65 = _film_response(lam)
     knots = np.linspace(LAMBDA_MIN, LAMBDA_MAX, BASIS_KNOTS)
@@ -151,9 +141,7 @@ def _basis_table(variant: str):
     # Film projection of D65 times each knot's hat function.
     project = np.trapezoid(response[:, None, :] * (d65 * hats)[None], lam, axis=2)
     basis = _smoothest_basis(project)
-    channels = [mi.Float((d65 * np.interp(lam, knots, basis[c])).astype(np.float32))
-                for c in range(3)]
-    return _Table(channels, len(lam)), 1.0
+    return [mi.Float((d65 * np.interp(lam, knots, basis[c])).astype(np.float32)) for c in range(3)]
 
 
 def _film_response(lam: np.ndarray):
