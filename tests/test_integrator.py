@@ -66,6 +66,26 @@ def test_registration_in_either_import_order(order):
     assert out.stdout.strip().endswith("PMICIntegrator")
 
 
+def test_every_module_imports_before_a_variant_is_set():
+    """Benchmarks and users import pmic's modules before ``mi.set_variant``: a module
+    that touches a variant's types at import (a table of ``mi.Point3f`` ...) fails
+    there, and would bind the first variant's types for every later one. Not these:
+    ``integrator`` chooses the CPU variant when none is set (its class derives from
+    the variant's), and the camera-path modules derive from Mitsuba's integrators
+    (both are imported through it)."""
+    chooses = ("pmic_integrator.integrator", "pmic_integrator.render.direct", "pmic_integrator.render.path")
+    code = ("import importlib, pkgutil, pmic_integrator\n"
+            "import mitsuba as mi\n"
+            "for m in pkgutil.walk_packages(pmic_integrator.__path__, 'pmic_integrator.'):\n"
+            f"    if m.name not in {chooses!r}:\n"
+            "        importlib.import_module(m.name)\n"
+            "        assert mi.variant() is None, m.name\n"
+            "print('imported')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "imported"
+
+
 def test_scalar_variant_gets_a_clear_error():
     code = ("import pmic_integrator, mitsuba as mi\nmi.set_variant('scalar_rgb')\n"
             "mi.load_dict({'type': 'pmic'})")

@@ -432,6 +432,32 @@ def test_a_lone_photon_is_traced_as_in_company():
         assert np.array_equal(got, want[..., order] if want.ndim > 1 else want[order])
 
 
+@pytest.mark.parametrize("kind", [photons.GLOBAL, photons.CAUSTIC])
+@pytest.mark.parametrize("max_store_depth", [64, 5])
+def test_the_photon_tail_loop_stores_what_the_wavefront_stores(monkeypatch, kind, max_store_depth):
+    """photons._trace_tail: a batch's last paths, traced in one symbolic loop (in
+    chunks of bounces that fill its slots), store the wavefront's photons, bit for bit
+    and in its order (by bounce, then by path), up to the same depth limit. A room lit
+    through a pane over a rough plastic floor: caustic paths, lobes sampled apart."""
+    d = _pane_room()
+    d["floor"]["bsdf"] = {"type": "roughplastic", "alpha": 0.2}
+    scene = mi.load_dict(d)
+    bounds = photons.emission_bounds(scene)
+
+    def batch(tail_paths, tail_slots):
+        monkeypatch.setattr(photons, "TAIL_LOOP_PATHS", tail_paths)
+        monkeypatch.setattr(photons, "TAIL_LOOP_SLOTS", tail_slots)
+        return [np.array(a) for a in photons._trace_batch(scene, kind, 0, paths, 3, max_store_depth, bounds)]
+
+    paths = 100_000
+    wavefront = batch(0, 1)
+    assert len(wavefront[3]) > 500 and wavefront[3].max() >= min(max_store_depth, 3)
+    for tail_paths, tail_slots in ((1 << 17, 1 << 21), (1 << 17, paths * 3), (500, 1 << 21)):
+        looped = batch(tail_paths, tail_slots)
+        for got, want in zip(looped, wavefront):
+            assert np.array_equal(got, want), (tail_paths, tail_slots)
+
+
 def test_guiding_is_judged_by_the_area_records_cover():
     """Guiding pays where records covering an eighth of the surface (records weighted
     by R²) owe a quarter of their light to bounces. Counted record by record (a quarter

@@ -49,6 +49,12 @@ MAX_BATCH_PATHS = 1 << 22
 #: stays under that: a map that would have reached it is given up with a chance
 #: under 0.2 %.
 GIVE_UP_SIGMAS = 3.0
+#: A batch's paths go on in one symbolic loop once no more than this many are left
+#: (:func:`_trace_tail`), for as many bounces as fill this many photon slots (a slot
+#: per path and bounce, 39 bytes: 82 MB; 32 bounces for 65 536 paths, the rest of
+#: them for 2 000). Measured in docs/tuning.md (``TAIL_LOOP_PATHS``).
+TAIL_LOOP_PATHS = 1 << 16
+TAIL_LOOP_SLOTS = 1 << 21
 #: Photon paths are cut at this many bounces even when max_depth is unbounded; by then
 #: Russian roulette has ended all but ~0.95^64 ≈ 4 % of paths in a white furnace.
 MAX_PHOTON_BOUNCES = 64
@@ -324,26 +330,117 @@ def _emit_batch(scene: mi.Scene, first_path: int, n_paths: int, seed: int, bound
     return rng, path_id, ray, flux, emitter
 
 
-def _survivors(alive, rng, ray, flux, specular_so_far, shared, from_delta, path_id):
-    """The photons of ``alive`` (their arrays and ``rng``'s state gathered in place)."""
-    keep = dr.compress(alive)
-    lone = dr.width(keep) == 1
-    if lone:
-        # One photon left: it goes on beside a dead twin (zero flux: not stored, not
-        # continued). Dr.Jit compiles one-element arrays as scalars: a lone photon
-        # made its own kernels (a whole bounce's, 0.1 s), whenever a seed left one.
-        keep = dr.gather(mi.UInt32, keep, mi.UInt32(0, 0))
-    ray = dr.gather(mi.Ray3f, ray, keep)
-    flux = dr.gather(mi.Spectrum, flux, keep)
-    if lone:
-        flux = dr.select(dr.arange(mi.UInt32, 2) == 0, flux, 0.0)
-    specular_so_far = dr.gather(mi.Bool, specular_so_far, keep)
-    from_delta = dr.gather(mi.Bool, from_delta, keep)
-    shared = dr.gather(mi.Bool, shared, keep)
-    path_id = dr.gather(mi.UInt32, path_id, keep)
-    rng.state = dr.gather(mi.UInt64, rng.state, keep)
-    rng.inc = dr.gather(mi.UInt64, rng.inc, keep)
-    return ray, flux, specular_so_far, shared, from_delta, path_id
+@dataclass
+class PhotonWalk:
+    """The light paths of a batch still on their way (:func:`_trace_batch`)."""
+
+    ray: mi.Ray3f
+    flux: mi.Spectrum
+    rng: mi.PCG32
+    path_id: mi.UInt32
+    specular_so_far: mi.Bool  #: every bounce so far sampled a delta or glossy lobe
+    shared: mi.Bool  #: no bounce sampled lobes apart (yet): see merge_caustic_photons
+    from_delta: mi.Bool  #: emitted by a delta light
+
+    def survivors(self, alive: mi.Bool) -> "PhotonWalk":
+        """The paths of ``alive``, their arrays and random states gathered in place."""
+        keep = dr.compress(alive)
+        lone = dr.width(keep) == 1
+        if lone:
+            # One photon left: it goes on beside a dead twin (zero flux: not stored, not
+            # continued). Dr.Jit compiles one-element arrays as scalars: a lone photon
+            # made its own kernels (a whole bounce's, 0.1 s), whenever a seed left one.
+            keep = dr.gather(mi.UInt32, keep, mi.UInt32(0, 0))
+        walk = dr.gather(PhotonWalk, self, keep)
+        if lone:
+            walk.flux = dr.select(dr.arange(mi.UInt32, 2) == 0, walk.flux, 0.0)
+        return walk
+
+
+@dataclass
+class PhotonBounce:
+    """What one bounce of a :class:`PhotonWalk` leaves: the photons it stores (in the
+    lanes of ``store``) and which paths go on (``alive``)."""
+
+    store: mi.Bool
+    position: mi.Point3f
+    normal: mi.Vector3f  #: towards the side the photon arrived from
+    power: mi.Color3f  #: linear sRGB (spectra.to_rgb: the photon's wavelengths projected)
+    specular: mi.Bool  #: the path's specular_so_far at the photon
+    shared: mi.Bool
+    alive: mi.Bool
+
+
+def _photon_bounce(scene: mi.Scene, walk: PhotonWalk, caustic: bool, first: bool, inseparable: bool):
+    """One bounce of every path of ``walk``: the photon it stores where it hits, and
+    the walk advanced past it (a BSDF sample, Russian roulette). Returns
+    ``(PhotonBounce, walk)``, for one evaluation: evaluated in two parts (the photons,
+    then the sample), the second kernel traced the bounce's ray again (the white
+    room's photon stage 4.0 -> 3.4 s, the same photons; docs/tuning.md)."""
+    ray, flux, rng = walk.ray, walk.flux, walk.rng
+    si = scene.ray_intersect(ray, mi.Bool(True))
+    # A NaN or Inf flux (a NaN emitter, an Inf texel on the way) ends that photon
+    # only: it must not poison the estimates around it.
+    valid = si.is_valid() & (dr.max(flux) > 0) & dr.all(dr.isfinite(flux))
+    bsdf = si.bsdf(ray)
+    lobes = lobes_of(bsdf.flags())  # (the vertex cases: pmic_integrator.cases)
+    has_diffuse = valid & lobes.diffuse
+    # Not on the dark side of a one-sided surface (the outside of a room of thin
+    # walls, lit by a sky): nothing there reflects, no lookup from the lit side
+    # accepts it, and it would take a share of the map, and records, for nothing.
+    # In a room lit through a window, 95 % of the photons were stored outside
+    # (its indirect light then came from 11k photons, not 122k).
+    store = has_diffuse & ~dark_side(bsdf, si, has_diffuse)
+    if caustic:
+        store = store & walk.specular_so_far & (not first)
+    # Oriented towards the side the photon arrived from, so that lookups from the
+    # other side of a thin wall reject it.
+    n = mi.Vector3f(si.n)
+    n = dr.select(dr.dot(n, -ray.d) < 0, -n, n)
+    stored = PhotonBounce(store=store, position=si.p, normal=n,
+                          power=to_rgb(flux * shading_normal_factors(si, n, -ray.d), ray.wavelengths),
+                          specular=walk.specular_so_far, shared=walk.shared, alive=mi.Bool(False))
+    u1, u2 = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
+    # A bounce off a BSDF that ignores lobe masks (principled) counts as diffuse:
+    # the camera path cannot split its lobes either, so it must not be a caustic.
+    separable = lobes_separable(bsdf, si, valid & has_diffuse & lobes.specular) \
+        if inseparable else mi.Bool(True)
+    # Rough plastic, for the caustic map: each lobe sampled apart, so that a photon
+    # that took the glossy lobe carries that lobe's light only (sample_lobes_apart).
+    # (Not for the global map, whose photons' lobe only marks the L S* D paths
+    # that fallback estimates leave to the caustic map: there half of the bounces
+    # took the weak glossy lobe and ended, and 200k photons took 1.2 s instead of
+    # 0.7 s in the 97k-triangle room of benchmarks/stage_costs.py.)
+    two_lobes = valid & lobes.rough_coat & separable
+    shared = walk.shared & ~two_lobes  # the two passes sample this bounce differently
+    apart = two_lobes & caustic
+    mode = mi.TransportMode.Importance
+    bs, bsdf_weight = bsdf.sample(mi.BSDFContext(mode), si, u1, u2, valid & ~apart)
+    bs_apart, weight_apart = sample_lobes_apart(bsdf, si, u1, u2, apart, mode)
+    bs[apart] = bs_apart
+    bsdf_weight[apart] = weight_apart
+    bsdf_weight = bsdf_weight * shading_normal_factors(si, n, -ray.d, bs.wo)[1]
+    specular_so_far = walk.specular_so_far & lobes_of(bs.sampled_type).specular & separable
+    alive = valid & (bs.pdf > 0) & (dr.max(bsdf_weight) > 0)
+    if caustic:
+        alive &= specular_so_far
+    # Russian roulette on the bounce's albedo keeps photon powers roughly equal.
+    survive = dr.minimum(dr.max(bsdf_weight), MAX_SURVIVAL)
+    stored.alive = alive & (rng.next_float32() < survive)
+    return stored, PhotonWalk(ray=si.spawn_ray(si.to_world(bs.wo)),
+                              flux=flux * bsdf_weight / dr.maximum(survive, 1e-8), rng=rng,
+                              path_id=walk.path_id, specular_so_far=specular_so_far, shared=shared,
+                              from_delta=walk.from_delta)
+
+
+#: What :func:`_trace_batch` returns for each photon, in order.
+PHOTON_FIELDS = ("position", "normal", "power", "depth", "specular", "path", "delta", "shared")
+
+
+def _photon_types() -> dict:
+    """Each of :data:`PHOTON_FIELDS`' array type in the current variant."""
+    return dict(position=mi.Point3f, normal=mi.Vector3f, power=mi.Color3f, depth=mi.UInt32,
+                specular=mi.Bool, path=mi.UInt32, delta=mi.Bool, shared=mi.Bool, store=mi.Bool)
 
 
 def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
@@ -353,90 +450,82 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
     ``bounds``: the scene's :func:`emission_bounds`; ``inseparable``: some BSDF may
     ignore lobe masks (tested at every bounce); ``guide``: emission samples drawn from
     it; ``samples``: a list that receives the paths' emission samples (origin,
-    direction) as drawn."""
+    direction) as drawn. A wavefront: each bounce one kernel (:func:`_photon_bounce`),
+    then the paths that go on are compacted."""
     rng, path_id, ray, flux, emitter = _emit_batch(scene, first_path, n_paths, seed, bounds,
                                                    guide, samples)
-    specular_so_far = dr.full(mi.Bool, True, n_paths)
-    shared = dr.full(mi.Bool, True, n_paths)  # no bounce sampled lobes apart (yet)
-    from_delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
-    ctx = mi.BSDFContext(mi.TransportMode.Importance)
-    out = {k: [] for k in ("position", "normal", "power", "depth", "specular", "path", "delta", "shared")}
+    walk = PhotonWalk(ray=ray, flux=flux, rng=rng, path_id=path_id,
+                      specular_so_far=dr.full(mi.Bool, True, n_paths),
+                      shared=dr.full(mi.Bool, True, n_paths),
+                      from_delta=mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta))
+    out = {name: [] for name in PHOTON_FIELDS}
     bounces = min(max_store_depth, MAX_PHOTON_BOUNCES)
-    for bounce in range(1, bounces + 1):
-        live = dr.width(path_id)
-        if live == 0:
+    bounce = 1
+    while dr.width(walk.path_id):
+        if bounce > 1 and dr.width(walk.path_id) <= TAIL_LOOP_PATHS:
+            last = min(bounce + TAIL_LOOP_SLOTS // dr.width(walk.path_id) - 1, bounces)
+            walk, alive = _trace_tail(scene, walk, kind == CAUSTIC, inseparable, bounce, last, out)
+        else:
+            last = bounce
+            stored, walk = _photon_bounce(scene, walk, kind == CAUSTIC, bounce == 1, inseparable)
+            dr.eval(stored, walk)
+            idx = dr.compress(stored.store)
+            if dr.width(idx) > 0:
+                for name in ("position", "normal", "power", "specular", "shared"):
+                    out[name].append(dr.gather(type(getattr(stored, name)), getattr(stored, name), idx))
+                out["depth"].append(dr.zeros(mi.UInt32, dr.width(idx)) + opaque_u32(bounce))
+                out["path"].append(dr.gather(mi.UInt32, walk.path_id, idx))
+                out["delta"].append(dr.gather(mi.Bool, walk.from_delta, idx))
+            alive = stored.alive
+        if last == bounces:
             break
-        si = scene.ray_intersect(ray, mi.Bool(True))
-        # A NaN or Inf flux (a NaN emitter, an Inf texel on the way) ends that photon
-        # only: it must not poison the estimates around it.
-        valid = si.is_valid() & (dr.max(flux) > 0) & dr.all(dr.isfinite(flux))
-        bsdf = si.bsdf(ray)
-        lobes = lobes_of(bsdf.flags())  # (the vertex cases: pmic_integrator.cases)
-        has_diffuse = valid & lobes.diffuse
-        # Not on the dark side of a one-sided surface (the outside of a room of thin
-        # walls, lit by a sky): nothing there reflects, no lookup from the lit side
-        # accepts it, and it would take a share of the map, and records, for nothing.
-        # In a room lit through a window, 95 % of the photons were stored outside
-        # (its indirect light then came from 11k photons, not 122k).
-        store = has_diffuse & ~dark_side(bsdf, si, has_diffuse)
-        if kind == CAUSTIC:
-            store = store & specular_so_far & (bounce >= 2)
-        # Orient the normal towards the side the photon arrived from, so that lookups
-        # from the other side of a thin wall reject it.
-        n = mi.Vector3f(si.n)
-        n = dr.select(dr.dot(n, -ray.d) < 0, -n, n)
-        # Stored as linear sRGB (spectra.to_rgb: the photon's wavelengths projected).
-        stored_power = to_rgb(flux * shading_normal_factors(si, n, -ray.d), ray.wavelengths)
-        dr.eval(store, si.p, n, stored_power, specular_so_far, shared)
-        idx = dr.compress(store)
-        if dr.width(idx) > 0:
-            out["position"].append(dr.gather(mi.Point3f, si.p, idx))
-            out["normal"].append(dr.gather(mi.Vector3f, n, idx))
-            out["power"].append(dr.gather(mi.Color3f, stored_power, idx))
-            out["depth"].append(dr.zeros(mi.UInt32, dr.width(idx)) + opaque_u32(bounce))
-            out["specular"].append(dr.gather(mi.Bool, specular_so_far, idx))
-            out["path"].append(dr.gather(mi.UInt32, path_id, idx))
-            out["delta"].append(dr.gather(mi.Bool, from_delta, idx))
-            out["shared"].append(dr.gather(mi.Bool, shared, idx))
-        if bounce == bounces:
-            break
-        u1, u2 = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
-        # A bounce off a BSDF that ignores lobe masks (principled) counts as diffuse:
-        # the camera path cannot split its lobes either, so it must not be a caustic.
-        separable = lobes_separable(bsdf, si, valid & has_diffuse & lobes.specular) \
-            if inseparable else mi.Bool(True)
-        # Rough plastic, for the caustic map: each lobe sampled apart, so that a photon
-        # that took the glossy lobe carries that lobe's light only (sample_lobes_apart).
-        # (Not for the global map, whose photons' lobe only marks the L S* D paths
-        # that fallback estimates leave to the caustic map: there half of the bounces
-        # took the weak glossy lobe and ended, and 200k photons took 1.2 s instead of
-        # 0.7 s in the 97k-triangle room of benchmarks/stage_costs.py.)
-        two_lobes = valid & lobes.rough_coat & separable
-        shared &= ~two_lobes  # the two passes sample this bounce differently
-        apart = two_lobes & (kind == CAUSTIC)
-        bs, bsdf_weight = bsdf.sample(ctx, si, u1, u2, valid & ~apart)
-        bs_apart, weight_apart = sample_lobes_apart(bsdf, si, u1, u2, apart, ctx.mode)
-        bs[apart] = bs_apart
-        bsdf_weight[apart] = weight_apart
-        bsdf_weight = bsdf_weight * shading_normal_factors(si, n, -ray.d, bs.wo)[1]
-        sampled_specular = lobes_of(bs.sampled_type).specular & separable
-        specular_so_far &= sampled_specular
-        alive = valid & (bs.pdf > 0) & (dr.max(bsdf_weight) > 0)
-        if kind == CAUSTIC:
-            alive &= specular_so_far
-        # Russian roulette on the bounce's albedo keeps photon powers roughly equal.
-        survive = dr.minimum(dr.max(bsdf_weight), MAX_SURVIVAL)
-        alive &= rng.next_float32() < survive
-        flux = flux * bsdf_weight / dr.maximum(survive, 1e-8)
-        ray = si.spawn_ray(si.to_world(bs.wo))
-        dr.eval(alive, flux, ray, specular_so_far, shared, from_delta, rng.state, rng.inc)
-        ray, flux, specular_so_far, shared, from_delta, path_id = _survivors(
-            alive, rng, ray, flux, specular_so_far, shared, from_delta, path_id)
-        dr.eval(ray, flux, specular_so_far, shared, from_delta, path_id, rng.state, rng.inc)
-    return (concat(out["position"], mi.Point3f), concat(out["normal"], mi.Vector3f),
-            concat(out["power"], mi.Color3f), concat(out["depth"], mi.UInt32),
-            concat(out["specular"], mi.Bool), concat(out["path"], mi.UInt32),
-            concat(out["delta"], mi.Bool), concat(out["shared"], mi.Bool))
+        walk = walk.survivors(alive)
+        dr.eval(walk)
+        bounce = last + 1
+    types = _photon_types()
+    return tuple(concat(out[name], types[name]) for name in PHOTON_FIELDS)
+
+
+def _trace_tail(scene: mi.Scene, walk: PhotonWalk, caustic: bool, inseparable: bool,
+                first_bounce: int, last_bounce: int, out: dict):
+    """The bounces ``first_bounce``..``last_bounce`` of ``walk``'s few paths in one
+    symbolic loop (:data:`TAIL_LOOP_PATHS`), their photons appended to ``out`` in the
+    wavefront's order (by bounce, then by path): each bounce of the wavefront is
+    recorded and code-generated anew, the same for 2 paths as for 60 000 (the white
+    room's photon stage: 0.55 s of kernels in 2.92 s; 1.02 s with this loop,
+    ``benchmarks/photon_stage.py``). Each path's photon of
+    bounce ``b`` goes to slot ``(b - first_bounce) * paths + path``. Returns
+    ``(walk, alive)``: the walk past ``last_bounce`` and the paths that go on."""
+    paths = dr.width(walk.path_id)
+    slots = paths * (last_bounce - first_bounce + 1)
+    kept = ("store", "position", "normal", "power", "specular", "shared")
+    types = _photon_types()
+    buffer = {name: dr.zeros(types[name], slots) for name in kept}
+    lane = dr.arange(mi.UInt32, paths)
+    # (Opaque: one kernel for every batch and bounce count.)
+    first, width, last = opaque_u32(first_bounce), opaque_u32(paths), opaque_u32(last_bounce)
+
+    def body(walk, bounce, alive):
+        stored, walk = _photon_bounce(scene, walk, caustic, False, inseparable)
+        slot = (bounce - first) * width + lane
+        for name in kept:
+            dr.scatter(buffer[name], getattr(stored, name), slot, stored.store)
+        return walk, bounce + 1, alive & stored.alive
+
+    walk, _, alive = dr.while_loop(
+        (walk, dr.zeros(mi.UInt32, paths) + first, dr.full(mi.Bool, True, paths)),
+        lambda walk, bounce, alive: alive & (bounce <= last), body, label="photon_tail",
+        max_iterations=last_bounce - first_bounce + 1)
+    dr.eval(walk, alive)
+    idx = dr.compress(buffer["store"])
+    if dr.width(idx):
+        for name in kept[1:]:
+            out[name].append(dr.gather(types[name], buffer[name], idx))
+        path = idx % width
+        out["depth"].append(idx // width + first)
+        out["path"].append(dr.gather(mi.UInt32, walk.path_id, path))
+        out["delta"].append(dr.gather(mi.Bool, walk.from_delta, path))
+    return walk, alive
 
 
 def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed: int,
