@@ -32,16 +32,18 @@ from pmic_integrator import gather, metrics
 
 #: What each mode's row is called in the table.
 MODES = {"on": "on; unanswered: traced", "zero": "on; unanswered: 0", "off": "off (leaks); none found: 0",
-         "fill": "on; none found: batch mean, hidden: 0"}
+         "fill": "on; none found: batch mean, hidden: 0",
+         "near": "on; unanswered: traced, near hits bounced on"}
 
 
 def render_counting(scene, spp: int, mode: str) -> tuple[np.ndarray, dict]:
     """pmic's image at defaults, and the records' lookups counted by outcome. ``mode``:
     "on" (as pmic runs: lookups no photon answers, hidden or not found, are answered by
     a traced bounce, ``gather.TRACE_UNANSWERED``), "zero" (they read 0, as before),
-    "off" (every found photon is read: no visibility test; none found: 0), or "fill"
+    "off" (every found photon is read: no visibility test; none found: 0), "fill"
     (lookups that find no photon read the mean irradiance of the batch's seen ones,
-    hidden ones 0: a probe of what those lookups are worth)."""
+    hidden ones 0: a probe of what those lookups are worth), or "near" (traced, and a
+    traced ray's near hit bounced on as a gather ray's: ``gather.TRACED_NEAR_HITS``)."""
     counts = {"seen": 0, "hidden": 0, "not found": 0}
     original, original_of = gather.GatherSource._visible, gather.GatherSource.irradiance_of
     last = {}
@@ -65,16 +67,17 @@ def render_counting(scene, spp: int, mode: str) -> tuple[np.ndarray, dict]:
             value = dr.select(last["found"], value, mean)
         return (value, seen) if with_seen else value
 
-    traced = gather.TRACE_UNANSWERED
+    traced, near = gather.TRACE_UNANSWERED, gather.TRACED_NEAR_HITS
     gather.GatherSource._visible = counted
-    gather.TRACE_UNANSWERED = mode == "on"
+    gather.TRACE_UNANSWERED = mode in ("on", "near")
+    gather.TRACED_NEAR_HITS = mode == "near"
     if mode == "fill":
         gather.GatherSource.irradiance_of = filled
     try:
         image = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "pmic"}), spp=spp))
     finally:
         gather.GatherSource._visible, gather.GatherSource.irradiance_of = original, original_of
-        gather.TRACE_UNANSWERED = traced
+        gather.TRACE_UNANSWERED, gather.TRACED_NEAR_HITS = traced, near
     return image[..., :3], counts
 
 

@@ -137,7 +137,10 @@ def measure(name: str, scene, found, spp: int, log, spec=None, path_seeds: int =
         image, seconds = compare.timed_render(scene, integrator, path_dn.spp * factor, 7 + factor, True)
         ladder.append((seconds, max(metrics.rel_mse(image, ref) - noise, 1e-12)))
     t_path_dn, extrapolated = time_to_error(ladder, max(pmic_dn.rel_mse - noise, 1e-12))
-    row["speedup_oidn"] = t_path_dn / pmic_dn.seconds
+    # Never reached (the ladder's curve stopped falling above pmic + OIDN's error): at
+    # least its longest run's time, marked ">" in the table.
+    row["speedup_oidn_not_reached"] = not math.isfinite(t_path_dn)
+    row["speedup_oidn"] = (t_path_dn if math.isfinite(t_path_dn) else max(t for t, _ in ladder)) / pmic_dn.seconds
     row["speedup_oidn_extrapolated"] = extrapolated
     row["path_oidn_ladder"] = ladder
     row["stats"] = {k: v for k, v in pmic.stats.items() if isinstance(v, (int, float, str))}
@@ -150,7 +153,8 @@ def markdown(rows, spp: int, command: str, title: str = "Public scenes") -> list
     lines = [f"# {title}: pmic against path at equal time", "",
              f"`{command}` ({common.machine_summary()}); pmic at {spp} spp, its default settings but for the command's. relMSE is "
              "less the reference's own noise; speed-up = how much sooner pmic reaches its error "
-             "than path (or path + OIDN) would (~: path + OIDN's curve extrapolated); path relMSE is the "
+             "than path (or path + OIDN) would (~: path + OIDN's curve extrapolated; >: it stopped falling "
+             "above pmic + OIDN's error, the bound is its longest run); path relMSE is the "
              "mean over its renders at equal time (`--path-seeds`, default 1).", "",
              "| scene | reference (noise) | pmic luminance | pmic relMSE | path relMSE | speed-up vs path | "
              "pmic+OIDN luminance | pmic+OIDN relMSE | path+OIDN relMSE | speed-up vs path+OIDN | "
@@ -158,7 +162,7 @@ def markdown(rows, spp: int, command: str, title: str = "Public scenes") -> list
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p, q, pd, qd = r["pmic"], r["path"], r["pmic+OIDN"], r["path+OIDN"]
-        mark = "~" if r["speedup_oidn_extrapolated"] else ""
+        mark = ">" if r.get("speedup_oidn_not_reached") else "~" if r["speedup_oidn_extrapolated"] else ""
         lines.append(f"| {r['scene']} | {r['reference']} ({r['reference_noise']:.1e}) | {p['luminance']:.3f} | "
                      f"{p['rel_mse']:.2e} | {q['rel_mse']:.2e} | {r['speedup']:.2f}× | {pd['luminance']:.3f} | "
                      f"{pd['rel_mse']:.2e} | {qd['rel_mse']:.2e} | {mark}{r['speedup_oidn']:.2f}× | "
