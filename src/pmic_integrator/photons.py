@@ -463,7 +463,7 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
     bounce = 1
     while dr.width(walk.path_id):
         if bounce > 1 and dr.width(walk.path_id) <= TAIL_LOOP_PATHS:
-            last = min(bounce + TAIL_LOOP_SLOTS // dr.width(walk.path_id) - 1, bounces)
+            last = min(bounce + max(TAIL_LOOP_SLOTS // dr.width(walk.path_id), 1) - 1, bounces)
             walk, alive = _trace_tail(scene, walk, kind == CAUSTIC, inseparable, bounce, last, out)
         else:
             last = bounce
