@@ -89,7 +89,8 @@ TRACE_UNANSWERED = True
 #: hit (an emitter sample and up to NEAR_HIT_BOUNCES more, each read in place) it cost
 #: the white room's cache 1.59 s instead of 0.56 s, Sponza's 0.59 s instead of 0.36 s,
 #: for the same means (`python benchmarks/gather_visibility.py --modes on near zero
-#: --stem gather_visibility_near`: white room 0.9946 / 0.9954, Sponza 0.9936 / 0.9932).
+#: --stem gather_visibility_near`, bounced on / read where it lands: white room
+#: 0.9946 / 0.9954, Sponza 0.9936 / 0.9932).
 TRACED_NEAR_HITS = False
 
 def stratified_directions(strata_theta: int, strata_phi: int, sample_index: mi.UInt32,

@@ -359,8 +359,8 @@ class PhotonWalk:
 
 @dataclass
 class PhotonBounce:
-    """What one bounce of a :class:`PhotonWalk` leaves: the photons it stores (in the
-    lanes of ``store``) and which paths go on (``alive``)."""
+    """The photons one bounce of a :class:`PhotonWalk` stores: in the lanes of
+    ``store`` (one per path; :func:`_trace_tail` keeps one per path and bounce)."""
 
     store: mi.Bool
     position: mi.Point3f
@@ -368,13 +368,17 @@ class PhotonBounce:
     power: mi.Color3f  #: linear sRGB (spectra.to_rgb: the photon's wavelengths projected)
     specular: mi.Bool  #: the path's specular_so_far at the photon
     shared: mi.Bool
-    alive: mi.Bool
+
+
+#: The :class:`PhotonBounce` fields a stored photon keeps as they are.
+STORED_FIELDS = ("position", "normal", "power", "specular", "shared")
 
 
 def _photon_bounce(scene: mi.Scene, walk: PhotonWalk, caustic: bool, first: bool, inseparable: bool):
     """One bounce of every path of ``walk``: the photon it stores where it hits, and
     the walk advanced past it (a BSDF sample, Russian roulette). Returns
-    ``(PhotonBounce, walk)``, for one evaluation: evaluated in two parts (the photons,
+    ``(PhotonBounce, alive, walk)`` (``alive``: the paths that go on), for one
+    evaluation: evaluated in two parts (the photons,
     then the sample), the second kernel traced the bounce's ray again (the white
     room's photon stage 4.0 -> 3.4 s, the same photons; docs/tuning.md)."""
     ray, flux, rng = walk.ray, walk.flux, walk.rng
@@ -399,7 +403,7 @@ def _photon_bounce(scene: mi.Scene, walk: PhotonWalk, caustic: bool, first: bool
     n = dr.select(dr.dot(n, -ray.d) < 0, -n, n)
     stored = PhotonBounce(store=store, position=si.p, normal=n,
                           power=to_rgb(flux * shading_normal_factors(si, n, -ray.d), ray.wavelengths),
-                          specular=walk.specular_so_far, shared=walk.shared, alive=mi.Bool(False))
+                          specular=walk.specular_so_far, shared=walk.shared)
     u1, u2 = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
     # A bounce off a BSDF that ignores lobe masks (principled) counts as diffuse:
     # the camera path cannot split its lobes either, so it must not be a caustic.
@@ -426,8 +430,8 @@ def _photon_bounce(scene: mi.Scene, walk: PhotonWalk, caustic: bool, first: bool
         alive &= specular_so_far
     # Russian roulette on the bounce's albedo keeps photon powers roughly equal.
     survive = dr.minimum(dr.max(bsdf_weight), MAX_SURVIVAL)
-    stored.alive = alive & (rng.next_float32() < survive)
-    return stored, PhotonWalk(ray=si.spawn_ray(si.to_world(bs.wo)),
+    alive &= rng.next_float32() < survive
+    return stored, alive, PhotonWalk(ray=si.spawn_ray(si.to_world(bs.wo)),
                               flux=flux * bsdf_weight / dr.maximum(survive, 1e-8), rng=rng,
                               path_id=walk.path_id, specular_so_far=specular_so_far, shared=shared,
                               from_delta=walk.from_delta)
@@ -441,6 +445,18 @@ def _photon_types() -> dict:
     """Each of :data:`PHOTON_FIELDS`' array type in the current variant."""
     return dict(position=mi.Point3f, normal=mi.Vector3f, power=mi.Color3f, depth=mi.UInt32,
                 specular=mi.Bool, path=mi.UInt32, delta=mi.Bool, shared=mi.Bool, store=mi.Bool)
+
+
+def _keep_photons(out: dict, photons: PhotonBounce, idx: mi.UInt32, paths: mi.UInt32, depth: mi.UInt32,
+                  walk: PhotonWalk) -> None:
+    """Append to ``out`` the photons at ``idx`` of ``photons``, stored by the paths
+    ``paths`` of ``walk`` after ``depth`` interactions (both one per photon)."""
+    types = _photon_types()
+    for name in STORED_FIELDS:
+        out[name].append(dr.gather(types[name], getattr(photons, name), idx))
+    out["depth"].append(depth)
+    out["path"].append(dr.gather(mi.UInt32, walk.path_id, paths))
+    out["delta"].append(dr.gather(mi.Bool, walk.from_delta, paths))
 
 
 def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
@@ -467,16 +483,12 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
             walk, alive = _trace_tail(scene, walk, kind == CAUSTIC, inseparable, bounce, last, out)
         else:
             last = bounce
-            stored, walk = _photon_bounce(scene, walk, kind == CAUSTIC, bounce == 1, inseparable)
-            dr.eval(stored, walk)
+            stored, alive, walk = _photon_bounce(scene, walk, kind == CAUSTIC, bounce == 1, inseparable)
+            dr.eval(stored, alive, walk)
             idx = dr.compress(stored.store)
             if dr.width(idx) > 0:
-                for name in ("position", "normal", "power", "specular", "shared"):
-                    out[name].append(dr.gather(type(getattr(stored, name)), getattr(stored, name), idx))
-                out["depth"].append(dr.zeros(mi.UInt32, dr.width(idx)) + opaque_u32(bounce))
-                out["path"].append(dr.gather(mi.UInt32, walk.path_id, idx))
-                out["delta"].append(dr.gather(mi.Bool, walk.from_delta, idx))
-            alive = stored.alive
+                _keep_photons(out, stored, idx, idx, dr.zeros(mi.UInt32, dr.width(idx)) + opaque_u32(bounce),
+                              walk)
         if last == bounces:
             break
         walk = walk.survivors(alive)
@@ -498,33 +510,28 @@ def _trace_tail(scene: mi.Scene, walk: PhotonWalk, caustic: bool, inseparable: b
     ``(walk, alive)``: the walk past ``last_bounce`` and the paths that go on."""
     paths = dr.width(walk.path_id)
     slots = paths * (last_bounce - first_bounce + 1)
-    kept = ("store", "position", "normal", "power", "specular", "shared")
     types = _photon_types()
-    buffer = {name: dr.zeros(types[name], slots) for name in kept}
+    kept = ("store",) + STORED_FIELDS
+    buffer = PhotonBounce(**{name: dr.zeros(types[name], slots) for name in kept})
     lane = dr.arange(mi.UInt32, paths)
     # (Opaque: one kernel for every batch and bounce count.)
     first, width, last = opaque_u32(first_bounce), opaque_u32(paths), opaque_u32(last_bounce)
 
     def body(walk, bounce, alive):
-        stored, walk = _photon_bounce(scene, walk, caustic, False, inseparable)
+        stored, going, walk = _photon_bounce(scene, walk, caustic, False, inseparable)
         slot = (bounce - first) * width + lane
         for name in kept:
-            dr.scatter(buffer[name], getattr(stored, name), slot, stored.store)
-        return walk, bounce + 1, alive & stored.alive
+            dr.scatter(getattr(buffer, name), getattr(stored, name), slot, stored.store)
+        return walk, bounce + 1, alive & going
 
     walk, _, alive = dr.while_loop(
         (walk, dr.zeros(mi.UInt32, paths) + first, dr.full(mi.Bool, True, paths)),
         lambda walk, bounce, alive: alive & (bounce <= last), body, label="photon_tail",
         max_iterations=last_bounce - first_bounce + 1)
     dr.eval(walk, alive)
-    idx = dr.compress(buffer["store"])
+    idx = dr.compress(buffer.store)
     if dr.width(idx):
-        for name in kept[1:]:
-            out[name].append(dr.gather(types[name], buffer[name], idx))
-        path = idx % width
-        out["depth"].append(idx // width + first)
-        out["path"].append(dr.gather(mi.UInt32, walk.path_id, path))
-        out["delta"].append(dr.gather(mi.Bool, walk.from_delta, path))
+        _keep_photons(out, buffer, idx, idx % width, idx // width + first, walk)
     return walk, alive
 
 
