@@ -26,44 +26,37 @@ import drjit as dr
 import mitsuba as mi
 
 import common
+import kernel_report
 from public_scenes import ORDER
 
 MODES = ("wavefront", "tail loop")
+#: kernel_report's name of the photon stage (pipeline.trace_maps).
+PHOTON_STAGE = next(label for _, function, label in kernel_report.STAGES if function == "trace_maps")
 
 
 def photon_stage(scene, mode: str, history: bool = False) -> dict:
     """Stats of one pmic render at 1 spp with the tail loop off or on (and with
-    ``history`` the kernels' execution seconds and launches of its photon stage)."""
-    from pmic_integrator import photons, pipeline
+    ``history`` the kernels' execution seconds and launches of its photon stage, as
+    ``kernel_report.py`` counts them)."""
+    from pmic_integrator import photons
 
     saved = photons.TAIL_LOOP_PATHS
     photons.TAIL_LOOP_PATHS = 0 if mode == "wavefront" else saved
-    trace_maps, kernels = pipeline.trace_maps, {}
-
-    def recorded(*args, **kwargs):
-        dr.kernel_history()  # (clears it)
-        dr.set_flag(dr.JitFlag.KernelHistory, True)
-        try:
-            maps = trace_maps(*args, **kwargs)
-            dr.sync_thread()
-        finally:
-            launched = dr.kernel_history()
-            dr.set_flag(dr.JitFlag.KernelHistory, False)
-        kernels.update(launches=len(launched),
-                       execution_s=sum(k.get("execution_time", 0.0) for k in launched) / 1000)
-        return maps
-
-    if history:
-        pipeline.trace_maps = recorded
+    kernels = {}
     try:
-        integrator = mi.load_dict({"type": "pmic"})
-        integrator.progress = False
-        dr.eval(mi.render(scene, integrator=integrator, spp=1))
-        dr.sync_thread()
+        if history:
+            recorder = kernel_report.render_recorded(scene, {"type": "pmic"}, 1)
+            stage = recorder.stages()[PHOTON_STAGE]
+            stats = recorder.integrator_stats
+            kernels = {"launches": stage.n["launches"], "execution_s": stage.execution_ms / 1000}
+        else:
+            integrator = mi.load_dict({"type": "pmic"})
+            integrator.progress = False
+            dr.eval(mi.render(scene, integrator=integrator, spp=1))
+            dr.sync_thread()
+            stats = integrator.stats
     finally:
         photons.TAIL_LOOP_PATHS = saved
-        pipeline.trace_maps = trace_maps
-    stats = integrator.stats
     return {"seconds": stats["time_photons"], "global": stats.get("photons_global", 0),
             "caustic": stats.get("photons_caustic", 0), **kernels}
 
