@@ -17,6 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import boundary
 from ._jit import every_nth, finite, opaque_float, opaque_u32, scatter_count
 from .hashgrid import PointGrid, PointGridPyramid, _neighbour_offset, _next_pow2, cell_of, hash_cell
 from .photons import PhotonMap
@@ -301,7 +302,7 @@ def precompute_stride(photons_a: int) -> int:
 
 def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float,
                           max_depth: int | None = None, caustics=None,
-                          other_paths: bool = True) -> PhotonMap:
+                          other_paths: bool = True, surface=None) -> PhotonMap:
     """Irradiance at photons (stage 2 of the paper), free of the self-term bias.
 
     The photons of one in :func:`precompute_stride` of the even light paths (set A)
@@ -332,6 +333,11 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     caustic map, or None): the caustic map's irradiance is estimated at A's photons too
     (``irradiance_caustic``), for gather rays that bounce on at a near hit
     (:func:`~pmic_integrator.gather.trace_gather_rays`).
+
+    ``surface`` (``(scene, seed, ray offset)``, or None): each estimate is divided by
+    the part of its disc that lies on its surface, measured by probes traced over it
+    (:func:`~pmic_integrator.boundary.surface_mass`), instead of the photons' centroid
+    (:func:`estimate_irradiance`'s ``boundary``), which misses discs cut on two sides.
     """
     if photons.count == 0:
         return PhotonMap.empty()
@@ -357,7 +363,13 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     # any: gather rays and camera paths sample those themselves (GatherSource.irradiance_at).
     delta = half_b.delta_light is not None and bool(dr.any(half_b.delta_light))
     irradiance = estimate_irradiance(half_b, grid_b, half_a.position, half_a.normal,
-                                     max_depth=max_depth, nodelta_too=delta)
+                                     max_depth=max_depth, nodelta_too=delta, boundary=surface is None)
+    if surface is not None:
+        scene, seed, offset = surface
+        mass = boundary.surface_mass(scene, half_a.position, half_a.normal,
+                                     grid_b.level_of(half_a.position)[1], PLANE_TOLERANCE,
+                                     NORMAL_COSINE, seed, offset)
+        scale = scale * dr.rcp(dr.maximum(mass, boundary.MIN_SURFACE_MASS))
     if delta:
         irradiance, nodelta = irradiance[0] * scale, irradiance[1] * scale
         half_a.irradiance_nodelta = finite(nodelta)

@@ -121,6 +121,10 @@ RAY_OFFSET_DIAGONAL = 1e-5
 #: nor let records grow to 10⁵ units. Photons tell where the light, and so the
 #: detail, is.
 LENGTH_SCALE_LOOKUPS = 100.0
+#: The precomputed estimates (what gather rays read) are corrected for discs that run
+#: past their surface by probes traced over the disc (boundary.surface_mass), not by
+#: the photons' centroid (docs/tuning.md, ``MIN_SURFACE_MASS``).
+SURFACE_PROBED_ESTIMATES = True
 #: Photons per caustic estimate relative to ``lookup_size``: caustics are sharper.
 CAUSTIC_LOOKUP_FRACTION = 0.5
 #: ...times up to CAUSTIC_LOOKUP_GROWTH where caustics are much of the light that
@@ -395,7 +399,7 @@ def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
     stats["paths_emitted_caustic"] = caustic_map.paths_emitted
 
     t0 = time.perf_counter()
-    lookups = precompute(settings, info, global_map, caustic_map, skipped)
+    lookups = precompute(settings, info, global_map, caustic_map, skipped, scene)
     dr.sync_thread()
     source = lookups["gather_source"]
     progress.done("precomputed irradiance",
@@ -539,7 +543,7 @@ def caustic_lookup_size(lookup_size: int, share: float) -> int:
 
 
 def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caustic_map: PhotonMap,
-               skipped: list) -> dict:
+               skipped: list, scene: mi.Scene | None = None) -> dict:
     """Stage 2: lookup radii, hash grids, and irradiance precomputed at the global
     photons (what gather rays read). Returns the PreparedScene fields it fills."""
     global_radius = settings.lookup_radius or adapted_lookup_radius(
@@ -578,7 +582,10 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
         gather_source = GatherSource.build(
             precompute_irradiance(global_map, global_radius, settings.lookup_size, depth_limit,
                                   caustics,
-                                  other_paths=global_map.bounced_share() >= OTHER_PATHS_MIN_BOUNCED),
+                                  other_paths=global_map.bounced_share() >= OTHER_PATHS_MIN_BOUNCED,
+                                  surface=None if scene is None or not SURFACE_PROBED_ESTIMATES else
+                                  (scene, settings.seed, RAY_OFFSET_DIAGONAL * min(
+                                      info.diagonal, LENGTH_SCALE_LOOKUPS * global_radius))),
             global_radius)
         gather_source.caustics_by_gathering = caustic_map.count == 0
         gather_source.crossing = info.has_diffuse_transmission

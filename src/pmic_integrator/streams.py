@@ -34,6 +34,7 @@ RECORD_DIRECT_DELTA = 12  #: ...and its samples of the delta lights (a sun, a sp
 RECORD_GATHER_REST = 13  #: the rest of a record's gather rays (pipeline.FIRST_GATHER_SHARE)
 CAMERA_POINTS = 101  #: ``irradiance_cache`` only: the camera rays that seed its records
 SURFACE_PROBES = 103  #: the view-independent probes sampled on every surface by area
+SURFACE_MASS = 107  #: probes of the surface under a precomputed estimate's disc (boundary.py)
 
 # Seed offsets (added to the scene seed) of the cache stage's passes, so that the pilot
 # rays of placement, of the probes and the records' own gathers never share numbers.
