@@ -1,6 +1,5 @@
 """The part of an estimate's disc that lies on its surface (boundary.surface_mass), and
 the precomputed irradiance it corrects."""
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
