@@ -472,11 +472,12 @@ def test_records_in_a_narrow_slot_hold_its_light(seed):
     0.942 of the irradiance path traces there (seeds 0, 1; 27 % dark on the inner faces of the
     material preview's arms). Gather hits closer than NEAR_HIT_LOOKUPS lookup radii
     are now bounced on (an emitter sample and a BSDF sample there): 0.988, 0.989. The
-    photons they read in the slot then held 0.924 of the irradiance `path` traces there
-    (the slot's floor, a strip narrower than the disc, 0.50); with the estimates scaled
-    by the part of their disc on the surface (boundary.py) 0.988 (floor 0.82), and the
-    records 1.026, 0.996. (Under an open sky records gather a quarter of gather_rays,
-    pipeline.FIRST_GATHER_SHARE: 512 gives them the 128 this test was set with.)"""
+    photons they read in the slot then held 0.924 of the irradiance `path` traces there;
+    with the estimates scaled by the part of their disc on the surface (boundary.py)
+    0.972 (the slot's floor, between two walls standing on it, is not corrected: 0.50),
+    and the records 1.019, 0.990. (Under an open sky records gather a quarter of
+    gather_rays, pipeline.FIRST_GATHER_SHARE: 512 gives them the 128 this test was set
+    with.)"""
     scene = mi.load_dict(sb.slot(0.1))
     integrator = mi.load_dict({"type": "pmic", "global_photons": 50_000, "gather_rays": 512,
                                "seed": seed})

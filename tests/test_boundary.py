@@ -22,21 +22,25 @@ def _mass(scene, points, radius):
                                           irradiance.PLANE_TOLERANCE, irradiance.NORMAL_COSINE, 0, 1e-5))
 
 
-def test_an_open_plane_holds_the_whole_kernel_and_a_wall_foot_half():
+def test_an_open_plane_and_a_wall_foot_hold_the_whole_kernel_and_a_free_edge_half():
+    """A wall standing on the floor is not an edge of the floor: the light at its foot
+    dips (the wall hides half the scene), and a floor corrected as though it went on
+    evenly came out bright (boundary.py)."""
     # A floor (z = 0, x and y in [-1, 1]) and a wall standing on it at x = 1.
     scene = mi.load_dict({"type": "scene", "floor": {"type": "rectangle"},
                           "wall": {"type": "rectangle", "to_world": mi.ScalarTransform4f()
                                    .translate([1, 0, 0]).rotate([0, 1, 0], -90)}})
     mass = _mass(scene, [[0, 0, 0], [0.5, 0.3, 0], [0.999, 0, 0], [-0.999, 0, 0]], 0.1)
     assert mass[:2] == pytest.approx(1.0, abs=1e-5)  # (drawn from the kernel: no noise)
-    assert mass[2] == pytest.approx(0.5, abs=0.04)  # beside the wall
+    assert mass[2] == pytest.approx(1.0, abs=1e-5)  # at the wall's foot
     assert mass[3] == pytest.approx(0.5, abs=0.04)  # at the floor's free edge
 
 
 @pytest.mark.parametrize("half_width", [0.2, 0.5])
 def test_a_strip_narrower_than_the_disc_holds_the_kernel_over_it(half_width):
     """A beam or a pillar cuts the disc on both sides: the photons' centroid stays put,
-    so the centroid correction cannot see it; the probes can."""
+    so the centroid correction cannot see it; the probes can. (The strip floats: its
+    sides are free edges.)"""
     scene = mi.load_dict({"type": "scene", "strip": {
         "type": "rectangle", "to_world": mi.ScalarTransform4f().scale([10, half_width, 1])}})
     mass = _mass(scene, [[0, 0, 0], [3, 0, 0]], 1.0)

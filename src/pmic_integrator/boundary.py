@@ -1,15 +1,20 @@
 """How much of a density estimate's disc lies on the surface it estimates (stage 2).
 
 An estimate at a photon divides the power of the photons it counts by the area of its
-disc. Where the disc runs past the surface (a pillar narrower than the disc, a ledge,
-a column curving away, a floor meeting a wall), the photons it counts fall on less area
+disc. Where the disc runs past the surface's edge (a pillar narrower than the disc, a
+ledge, a column curving away, a window frame), the photons it counts fall on less area
 than that, and the estimate comes out dark. :func:`irradiance.estimate_irradiance`
 corrects a straight edge from the photons' centroid, which moves away from the edge; a
-strip cut on both sides (a pillar, a beam) leaves the centroid in place and went
-uncorrected: photons whose disc lay less than 0.6 on their surface held 0.54 of the
-irradiance `path` traces there, 13 % of Sponza's light (docs/tuning.md,
-``MIN_SURFACE_MASS``). Probes traced over the disc measure the surface under it
-instead, whatever its shape.
+strip cut on both sides leaves the centroid in place and went uncorrected: photons whose
+disc lay less than 0.6 on their surface held 0.54 of the irradiance `path` traces
+there, 13 % of Sponza's light. Probes traced over the disc measure the surface under it
+instead, whatever its shape (docs/tuning.md, ``SURFACE_PROBED_ESTIMATES``).
+
+Where something stands on the surface (a wall on a floor: a concave corner) the disc
+is not corrected: the light there dips towards the wall, which hides half the scene
+from the floor at its foot, and an estimate scaled up to the even field of a free
+edge came out too bright (a classroom kind lit through its windows: 1.06 of `path`
+corrected there too, 1.014 not).
 """
 from __future__ import annotations
 
@@ -30,15 +35,16 @@ def surface_mass(scene: mi.Scene, p: mi.Point3f, n: mi.Vector3f, radius: mi.Floa
                  plane_tolerance: float, normal_cosine: float, seed: int,
                  offset: float) -> mi.Float:
     """The mass of the normalised Simpson kernel of ``radius`` about ``p`` that lies on
-    surface an estimate at ``(p, n)`` counts photons of: within ``plane_tolerance`` radii
-    of the plane, facing within ``normal_cosine`` of ``n``, reached from ``p`` without
-    crossing anything (1 for an open plane; 0.5 at a straight edge).
+    surface an estimate at ``(p, n)`` counts photons of (within ``plane_tolerance``
+    radii of the plane, facing within ``normal_cosine`` of ``n``) or behind something
+    standing on it: 1 for an open plane and at a wall's foot, 0.5 at a free straight
+    edge, the strip's share for a strip narrower than the disc.
 
-    Each probe is a point of the disc, lifted off the plane: the lifted segment from
-    ``p`` to it must be clear (a wall standing on the floor ends the floor's surface),
-    and a ray down from it must meet a surface within the tolerance below the plane.
-    The lift is the tolerance, or half the room above ``p`` where something overhangs it
-    (the narrow gap between a ceiling light and the ceiling)."""
+    Each probe is a point of the disc, lifted off the plane. Where the lifted segment
+    from ``p`` to it is blocked (a wall), it counts whole; else a ray down from it must
+    meet a surface within the tolerance below the plane. The lift is the tolerance, or
+    half the room above ``p`` where something overhangs it (the narrow gap between a
+    ceiling light and the ceiling)."""
     lanes = dr.width(p.x)
     if lanes == 0:
         return mi.Float()
@@ -73,7 +79,8 @@ def surface_mass(scene: mi.Scene, p: mi.Point3f, n: mi.Vector3f, radius: mi.Floa
         d2 = dr.minimum(dr.squared_norm(below.p - p) * inv_r2, 1.0)
         weight = dr.square((1.0 - d2) * dr.rcp(dr.maximum(1.0 - s, 1e-6))) \
             * dr.rcp(dr.maximum(cosine, normal_cosine))
-        return i + 1, mass + dr.select(on, dr.minimum(weight, 1.0 / normal_cosine), 0.0), rng
+        counted = dr.select(on, dr.minimum(weight, 1.0 / normal_cosine), dr.select(blocked, 1.0, 0.0))
+        return i + 1, mass + counted, rng
 
     _, mass, _ = dr.while_loop((dr.zeros(mi.UInt32, lanes), dr.zeros(mi.Float, lanes),
                                 make_rng(lanes, seed, stream=streams.SURFACE_MASS)),
