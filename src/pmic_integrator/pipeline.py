@@ -252,15 +252,19 @@ class PreparedScene:
 
     @property
     def length_scale(self) -> float:
-        """World-space scale for ray offsets and the largest record: the diagonal, but
-        no more than LENGTH_SCALE_LOOKUPS global lookup radii."""
-        if self.global_radius > 0:
-            return min(self.info.diagonal, LENGTH_SCALE_LOOKUPS * self.global_radius)
-        return self.info.diagonal
+        return length_scale(self.info.diagonal, self.global_radius)
 
     @property
     def ray_offset(self) -> float:
         return RAY_OFFSET_DIAGONAL * self.length_scale
+
+
+def length_scale(diagonal: float, global_radius: float) -> float:
+    """World-space scale for ray offsets and the largest record: the diagonal, but no
+    more than LENGTH_SCALE_LOOKUPS global lookup radii."""
+    if global_radius > 0:
+        return min(diagonal, LENGTH_SCALE_LOOKUPS * global_radius)
+    return diagonal
 
 
 # ----------------------------------------------------------------------------------------
@@ -399,7 +403,7 @@ def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
     stats["paths_emitted_caustic"] = caustic_map.paths_emitted
 
     t0 = time.perf_counter()
-    lookups = precompute(settings, info, global_map, caustic_map, skipped, scene)
+    lookups = precompute(scene, settings, info, global_map, caustic_map, skipped)
     dr.sync_thread()
     source = lookups["gather_source"]
     progress.done("precomputed irradiance",
@@ -542,8 +546,8 @@ def caustic_lookup_size(lookup_size: int, share: float) -> int:
     return max(1, int(lookup_size * CAUSTIC_LOOKUP_FRACTION * growth))
 
 
-def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caustic_map: PhotonMap,
-               skipped: list, scene: mi.Scene | None = None) -> dict:
+def precompute(scene: mi.Scene, settings: Settings, info: SceneInfo, global_map: PhotonMap,
+               caustic_map: PhotonMap, skipped: list) -> dict:
     """Stage 2: lookup radii, hash grids, and irradiance precomputed at the global
     photons (what gather rays read). Returns the PreparedScene fields it fills."""
     global_radius = settings.lookup_radius or adapted_lookup_radius(
@@ -583,9 +587,9 @@ def precompute(settings: Settings, info: SceneInfo, global_map: PhotonMap, caust
             precompute_irradiance(global_map, global_radius, settings.lookup_size, depth_limit,
                                   caustics,
                                   other_paths=global_map.bounced_share() >= OTHER_PATHS_MIN_BOUNCED,
-                                  surface=None if scene is None or not SURFACE_PROBED_ESTIMATES else
-                                  (scene, settings.seed, RAY_OFFSET_DIAGONAL * min(
-                                      info.diagonal, LENGTH_SCALE_LOOKUPS * global_radius))),
+                                  surface=(scene, settings.seed, RAY_OFFSET_DIAGONAL *
+                                           length_scale(info.diagonal, global_radius))
+                                  if SURFACE_PROBED_ESTIMATES else None),
             global_radius)
         gather_source.caustics_by_gathering = caustic_map.count == 0
         gather_source.crossing = info.has_diffuse_transmission
