@@ -463,21 +463,11 @@ def test_a_bounded_max_depth_bounds_the_light_read_from_the_cache(max_depth):
     assert ratio == pytest.approx(1.0, abs=0.015)  # after: 0.993-1.000
 
 
-@pytest.mark.rgb_only('traces path.sample on rays built without wavelengths')
-@pytest.mark.parametrize("seed", [0, 1])
-def test_records_in_a_narrow_slot_hold_its_light(seed):
-    """Records between two white blocks 0.1 apart (a lookup radius is 0.14): their
-    gather rays meet the slot's other wall a hand's width off, where the photons'
-    estimate, a disc wider than the slot, was far off: the records held 0.963 and
-    0.942 of the irradiance path traces there (seeds 0, 1; 27 % dark on the inner faces of the
-    material preview's arms). Gather hits closer than NEAR_HIT_LOOKUPS lookup radii
-    are now bounced on (an emitter sample and a BSDF sample there): 0.988, 0.989. The
-    photons they read in the slot then held 0.924 of the irradiance `path` traces there;
-    with the estimates scaled by the part of their disc on the surface (boundary.py)
-    0.972 (the slot's floor, between two walls standing on it, is not corrected: 0.50),
-    and the records 1.019, 0.990. (Under an open sky records gather a quarter of
-    gather_rays, pipeline.FIRST_GATHER_SHARE: 512 gives them the 128 this test was set
-    with.)"""
+def _slot_records_over_path(seed: int) -> float:
+    """Irradiance the records between two white blocks 0.1 apart hold (their own and
+    their direct light), over what `path` traces there (1024 cosine-distributed rays at
+    each record), for photon and render seed ``seed``. (Under an open sky records
+    gather a quarter of gather_rays, pipeline.FIRST_GATHER_SHARE: 512 gives them 128.)"""
     scene = mi.load_dict(sb.slot(0.1))
     integrator = mi.load_dict({"type": "pmic", "global_photons": 50_000, "gather_rays": 512,
                                "seed": seed})
@@ -488,7 +478,6 @@ def test_records_in_a_narrow_slot_hold_its_light(seed):
     inside = np.nonzero((np.abs(position[:, 0]) < 0.051) & (position[:, 2] > 0.02) &
                         (position[:, 2] < 0.98) & (np.abs(position[:, 1]) < 0.45))[0]
     assert len(inside) > 20
-    # Path-traced irradiance at each of them: 1024 cosine-distributed rays.
     rays_per_record = 1024
     lane = dr.arange(mi.UInt32, len(inside) * rays_per_record)
     owner = dr.gather(mi.UInt32, mi.UInt32(inside.astype(np.uint32)), lane // rays_per_record)
@@ -501,7 +490,25 @@ def test_records_in_a_narrow_slot_hold_its_light(seed):
         scene, sampler, mi.RayDifferential3f(mi.Ray3f(origin, direction)))
     truth = np.array(mi.luminance(mi.Color3f(radiance))).reshape(len(inside), -1).mean(1) * np.pi
     held = np.array(mi.luminance(mi.Color3f(records.irradiance + index.direct)))[inside]
-    assert held.sum() / truth.sum() == pytest.approx(1.0, abs=0.03)
+    return float(held.sum() / truth.sum())
+
+
+@pytest.mark.rgb_only('traces path.sample on rays built without wavelengths')
+def test_records_in_a_narrow_slot_hold_its_light():
+    """Records between two white blocks 0.1 apart (a lookup radius is 0.14): their
+    gather rays meet the slot's other wall a hand's width off, where the photons'
+    estimate, a disc wider than the slot, is far off. Two fixes answer it, either
+    enough here: gather hits closer than NEAR_HIT_LOOKUPS lookup radii are bounced on,
+    and the photons' estimates are scaled by the part of their disc on the surface
+    (boundary.py). Over photon seeds 0-7 the records hold 1.007 of `path`'s irradiance
+    (0.996 without the near-hit bounces, 0.990 without the probes, **0.960 without
+    both**).
+
+    One seed's ratio moves ±6 % (0.949-1.064: the few photons that enter the slot), so
+    the test takes the mean of eight. (It took seeds 0 and 1 alone before, which passed
+    or failed by their luck: seed 2 gives 0.949 with both fixes.)"""
+    ratios = [_slot_records_over_path(seed) for seed in range(8)]
+    assert np.mean(ratios) == pytest.approx(1.0, abs=0.02)  # 1.007
 
 
 @pytest.mark.parametrize("estimator, tolerance", [("first_hit", 0.025), ("final_gather", 0.035)])
@@ -520,3 +527,20 @@ def test_normal_mapped_walls_reflect_the_cache_at_their_tilted_response(estimato
                            "bitmap": mi.Bitmap(np.tile(texel.astype(np.float32), (4, 4, 1)))}}
     assert ratio_to_path(sb.cornell(size=32, white=white), spp=32, path_spp=2048, seeds=(0, 1),
                          estimator=estimator) == pytest.approx(1.0, abs=tolerance)
+
+
+def test_a_room_on_a_vast_sunlit_ground_is_as_bright_as_path():
+    """The classroom kind (an 8 × 3 × 6 m room lit by a sun and a sky through its
+    windows, on a ground 220 m wide), at pmic's default photon counts. Its sky and sun
+    shot their photons across the whole ground: a few dozen of 200 000 entered the
+    room, the lookup radius was set by the ground's (2.2 m) and so were the records
+    (12 in the room, each wider than it). The room came out 1.016 of `path`'s mean
+    over photon seeds 0-4 (0.999-1.049 from seed to seed). Three quarters of those rays
+    now cross the building and the ground beside it (emission.focus_box): 0.995
+    (0.986-1.012)."""
+    from pmic_integrator import kinds
+
+    ratio = ratio_to_path(kinds.sunlit_classroom(size=(32, 18)), spp=32, path_spp=8192,
+                          seeds=range(5), global_photons=200_000, caustic_photons=100_000,
+                          gather_rays=256)
+    assert ratio == pytest.approx(1.0, abs=0.01 + SPECTRAL_STORE)

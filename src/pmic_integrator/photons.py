@@ -564,7 +564,9 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     start = time.perf_counter()
     bounds = emission_bounds(scene)  # once: every batch shoots from the same rectangles
     guide = None
-    may_guide = guide_emission and kind == GLOBAL and \
+    # (Not with a focus, emission.focus_box: both remap the origin's square, and the
+    # guide's density is that of the square, not of the focus's mixture.)
+    may_guide = guide_emission and kind == GLOBAL and bounds.focus is None and \
         any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) for e in scene.emitters())
     while stored < target and emitted < max_paths:
         batch_paths = int(min(batch_paths, max_paths - emitted))
