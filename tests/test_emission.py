@@ -306,3 +306,29 @@ def test_focused_emission_carries_the_same_flux_onto_the_building_and_the_ground
     assert w[top].sum() / n == pytest.approx(direct, rel=0.03)
     # The ground: 200² less the block's footprint and (for the sun) its shadow.
     assert w[ground].sum() / n == pytest.approx(direct * 200.0 ** 2, rel=0.03)
+
+
+def test_emission_is_not_guided_where_it_is_focused(monkeypatch):
+    """The window-lit room (whose emission is guided: most paths meet its outside) on a
+    mirror ground 80 units wide (nothing is stored on it): its sky's rays
+    now have a focus (the room), and the emission guide, which reweighs the origin's
+    square as if it were drawn uniformly, would be biased over the focus's mixture.
+    The guide is not learned there; without the focus it is."""
+    from pmic_integrator import emission
+    from pmic_integrator import kinds as sb
+    from pmic_integrator import photons as ph
+
+    d = sb.window_room()
+    d["ground"] = {"type": "rectangle", "bsdf": {"type": "conductor"},
+                   "to_world": mi.ScalarTransform4f().translate([0, -0.05, 0]).rotate([1, 0, 0], -90).scale(40.0)}
+    scene = mi.load_dict(d)
+    learned = []
+    original = ph.EmissionGuide.learn
+    monkeypatch.setattr(ph.EmissionGuide, "learn", staticmethod(lambda *a: learned.append(1) or original(*a)))
+    assert emission.emission_bounds(scene).focus is not None
+    # (A first batch of 65 536 paths: some of them must store photons for the guide.)
+    ph.trace_photons(scene, ph.GLOBAL, 50_000, -1, 1, 70_000, warn=False, guide_emission=True)
+    assert not learned
+    monkeypatch.setattr(emission, "FOCUS_MAX_RATIO", 0.0)
+    ph.trace_photons(scene, ph.GLOBAL, 50_000, -1, 1, 70_000, warn=False, guide_emission=True)
+    assert learned
