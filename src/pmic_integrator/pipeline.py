@@ -256,7 +256,7 @@ class PreparedScene:
 
     @property
     def ray_offset(self) -> float:
-        return RAY_OFFSET_DIAGONAL * self.length_scale
+        return ray_offset(self.info.diagonal, self.global_radius)
 
 
 def length_scale(diagonal: float, global_radius: float) -> float:
@@ -265,6 +265,12 @@ def length_scale(diagonal: float, global_radius: float) -> float:
     if global_radius > 0:
         return min(diagonal, LENGTH_SCALE_LOOKUPS * global_radius)
     return diagonal
+
+
+def ray_offset(diagonal: float, global_radius: float) -> float:
+    """How far rays start off the surfaces they leave: RAY_OFFSET_DIAGONAL of the
+    :func:`length_scale`."""
+    return RAY_OFFSET_DIAGONAL * length_scale(diagonal, global_radius)
 
 
 # ----------------------------------------------------------------------------------------
@@ -587,8 +593,7 @@ def precompute(scene: mi.Scene, settings: Settings, info: SceneInfo, global_map:
             precompute_irradiance(global_map, global_radius, settings.lookup_size, depth_limit,
                                   caustics,
                                   other_paths=global_map.bounced_share() >= OTHER_PATHS_MIN_BOUNCED,
-                                  surface=(scene, settings.seed, RAY_OFFSET_DIAGONAL *
-                                           length_scale(info.diagonal, global_radius))
+                                  surface=(scene, settings.seed, ray_offset(info.diagonal, global_radius))
                                   if SURFACE_PROBED_ESTIMATES else None),
             global_radius)
         gather_source.caustics_by_gathering = caustic_map.count == 0
