@@ -4,7 +4,8 @@ scenes and on the interior kinds built in code.
 For each scene and estimator: two renders (render seeds 0 and 1, after a warm-up that
 compiles the kernels), each scored against the reference (relMSE less the reference's
 own noise, raw and after OIDN with albedo/normal guides; mean luminance over the
-reference's); the table gives the means and the mean render time. The estimators
+reference's); the table gives the means and the mean render time. The renders ask for
+no AOVs; OIDN gets the guides of Mitsuba's ``aov`` integrator. The estimators
 share one cache where they can (``adaptive`` and ``final_gather``), so the times
 compare their camera passes.
 
@@ -41,17 +42,30 @@ def load(name: str, reference_seconds: float):
     return common.load_public(name), found[0], found[1]
 
 
-def measure(scene, ref, noise, estimator: str, spp: int) -> dict:
+def guides_of(scene, spp: int):
+    """The denoiser's guides (albedo, shading normal) of ``scene``, as Mitsuba's ``aov``
+    integrator computes them: the same for every estimator's raw image."""
+    integrator = mi.load_dict({"type": "aov", "aovs": "albedo:albedo,normal:sh_normal"})
+    return np.array(mi.render(scene, integrator=integrator, spp=spp, seed=0))
+
+
+def measure(scene, ref, noise, estimator: str, spp: int, guides=None) -> dict:
+    """Raw renders (no AOVs asked for: the image as it is rendered for viewing) at
+    render seeds 0 and 1, scored raw and after OIDN with ``guides`` (from
+    :func:`guides_of`): what OIDN makes of that raw image. (A render that outputs the
+    guides itself is meant for a denoiser: there ``adaptive`` makes no first reads and
+    renders ``final_gather``'s image.)"""
     from pmic_integrator import compare, metrics
 
-    integrator = mi.load_dict(compare.with_guides({"type": "pmic", "estimator": estimator}))
+    integrator = mi.load_dict({"type": "pmic", "estimator": estimator})
     mi.render(scene, integrator=integrator, spp=1, seed=5)  # (compiles; builds the cache)
+    guides = guides_of(scene, spp) if guides is None else guides
     rows = []
     for seed in (0, 1):
         start = time.perf_counter()
         image = np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed))
         seconds = time.perf_counter() - start
-        denoised = compare.denoise_guided(image)
+        denoised = compare.denoise_guided(np.concatenate([image[..., :3], guides], axis=-1))
         rows.append((metrics.rel_mse(image[..., :3], ref) - noise, metrics.rel_mse(denoised, ref) - noise,
                      metrics.luminance_ratio(image[..., :3], ref), seconds,
                      metrics.finite(image) and metrics.finite(denoised)))
@@ -63,7 +77,9 @@ def measure(scene, ref, noise, estimator: str, spp: int) -> dict:
 def markdown(rows, estimators, spp: int, command: str) -> list[str]:
     lines = ["# pmic's estimators at equal spp", "",
              f"`{command}` ({common.machine_summary()}); {spp} spp, means over render seeds 0 and 1; "
-             "relMSE less the reference's own noise; OIDN with albedo/normal guides.", "",
+             "relMSE less the reference's own noise; raw renders without AOVs, then OIDN with the albedo/normal guides "
+             "of Mitsuba's `aov` integrator (a render that outputs the guides itself is rendered by `adaptive` "
+             "as by `final_gather`).", "",
              "| scene | " + " | ".join(f"{e} relMSE / +OIDN / luminance / s" for e in estimators) + " |",
              "|---|" + "---|" * len(estimators)]
     for row in rows:
@@ -85,8 +101,9 @@ def main(argv=None) -> int:
     for name in args.scenes:
         scene, ref, noise = load(name, args.reference_seconds)
         row = {"scene": name, "reference_noise": noise}
+        guides = guides_of(scene, args.spp)
         for estimator in args.estimators:
-            row[estimator] = measure(scene, ref, noise, estimator, args.spp)
+            row[estimator] = measure(scene, ref, noise, estimator, args.spp, guides)
             print(f"{name} {estimator}: {row[estimator]}", flush=True)
         rows.append(row)
     lines = markdown(rows, args.estimators, args.spp, common.command(__file__, argv))

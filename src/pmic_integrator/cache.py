@@ -573,6 +573,44 @@ def _gather_rays(scene, source, p, n, strata, seed, offset, about=None,
     return owner, j, k, local, radiance, distance
 
 
+#: Rays per record of :func:`record_surroundings` (8 x 8 strata).
+SURROUNDINGS_STRATA = (8, 8)
+
+
+def record_surroundings(scene, source: GatherSource, records: "CacheRecords", seed: int,
+                        offset: float):
+    """``(glossy_share, photon_support)`` of each record, from SURROUNDINGS_STRATA
+    cosine rays: the share of its rays whose first hit is a surface that its gather
+    cannot read as diffuse (glass, metal, glossy or principled: no separable diffuse
+    lobe; emitters aside), and, of its rays that hit a diffuse surface, the share
+    with a precomputed photon within one lookup radius of the hit
+    (:meth:`GatherSource.photon_near`). What the adaptive estimator asks of a record
+    before reading it at a camera path's first hit (render.reads.first_read_pays)."""
+    from .bsdfs import lobes_separable
+    from .cases import lobes_of
+
+    about = records.shading_normal
+    ray, owner, _, _, _, _ = _stratified_rays(records.position, records.normal, SURROUNDINGS_STRATA,
+                                              seed, streams.RECORD_SURROUNDINGS, offset, about)
+    si = scene.ray_intersect(ray)
+    valid = si.is_valid()
+    bsdf = si.bsdf(ray)
+    lobes = lobes_of(bsdf.flags())
+    diffuse = valid & lobes.diffuse & lobes_separable(bsdf, si, valid & lobes.mixed)
+    glossy = valid & ~diffuse & (si.shape.emitter() == None)  # noqa: E711
+    n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)
+    supported = source.photon_near(si.p, n, diffuse)
+    rays = SURROUNDINGS_STRATA[0] * SURROUNDINGS_STRATA[1]
+
+    def count(mask):
+        return block_sum(dr.select(mask, mi.Float(1.0), mi.Float(0.0)), rays)
+
+    glossy_share = count(glossy) * (1.0 / rays)
+    support = count(supported) / dr.maximum(count(diffuse), 1.0)
+    dr.eval(glossy_share, support)
+    return glossy_share, support
+
+
 def harmonic_mean_distance(scene, p: mi.Point3f, n: mi.Vector3f, strata, seed: int,
                            offset: float):
     """R: the harmonic mean of the hit distances of M·N stratified rays (misses count
@@ -979,6 +1017,9 @@ class RecordIndex:
     packed_body: mi.Float = field(default=None, metadata={"derived": True})
     #: :meth:`bounce_variance`, once computed (derived from the records).
     ray_variance: mi.Float = field(default=None, metadata={"derived": True})
+    #: Per record, whether the adaptive estimator may read it at a camera path's first
+    #: hit (:meth:`survey_first_reads`); None: not surveyed, none may.
+    first_readable: mi.Bool = field(default=None, metadata={"derived": True})
 
     @staticmethod
     def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0,

@@ -154,7 +154,7 @@ def _print_results(results, spec, pmic, path, denoised):
         if pmic.stats.get("time_render", pmic.seconds) < 0.5 * pmic.seconds:
             hints.append("pmic's fixed cost, photons and cache, is most of this run: try more "
                          "--spp or a larger image")
-        estimator = spec.get("estimator", "final_gather")
+        estimator = spec.get("estimator", "adaptive")
         if estimator in ("adaptive", "final_gather"):
             traced = "where the cache cannot be trusted" if estimator == "adaptive" else "always"
             hints.append(f"its estimator ({estimator}) traces the first diffuse bounce {traced} and "

@@ -272,6 +272,14 @@ class GatherSource:
             steps.append((self.far_photons, self.far_grid, self.far_grid.cell_size, False))
         return steps
 
+    def photon_near(self, p: mi.Point3f, n: mi.Vector3f, active) -> mi.Bool:
+        """Whether a precomputed photon on the surface at ``p`` lies within one lookup
+        radius (search steps 1-2): hits whose gather reads light from where it arrives,
+        not from a photon the wider steps found far off."""
+        near = self.near_grid is not None
+        photons, grid = (self.near_photons, self.near_grid) if near else (self.photons, self.grid)
+        return nearest_photon(photons, grid, p, n, self.radius / self.SEARCH_REACH, active)[1] & active
+
     def _read(self, photons: PhotonMap, index, hit, caustic, without_delta: bool) -> mi.Color3f:
         """Irradiance of photon ``index`` where ``hit``: its caustic irradiance in the
         lanes of ``caustic`` (None: none), else its whole (without the direct light of

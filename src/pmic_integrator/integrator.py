@@ -23,6 +23,7 @@ from .render.caustics import add_deferred_caustics  # noqa: E402
 from .render import config as path_config  # noqa: E402
 from .render.config import PathConfig, PathContext  # noqa: E402
 from .render.path import trace_camera_paths  # noqa: E402
+from .render.reads import survey_first_reads  # noqa: E402
 from .settings import METHODS, Settings  # noqa: E402,F401 (METHODS re-exported)
 
 log = logging.getLogger("pmic")
@@ -52,21 +53,23 @@ class _PMICMethods:
            (classic view-dependent Ward cache, records placed from the camera).
        * - ``estimator``
          - string
-         - ``"final_gather"``
-         - ``pmic`` only. ``"final_gather"``: the first diffuse vertex of a camera path
-           is path-traced (one BSDF sample, MIS with the emitters) and the cache, which
-           then also holds direct light, is read where that ray lands, unless it
-           lands closer than a record radius (corners, contacts, gaps: traced once
-           more, up to 3 times). Its error is noise, which a denoiser removes, and it
-           keeps converging. ``"adaptive"``: the same, but the first diffuse vertex
+         - ``"adaptive"``
+         - ``pmic`` only. ``"adaptive"``: the first diffuse vertex of a camera path
            reads the records' bounced light (its direct light still sampled) where
-           the records resolved the photons around them (their reach spans three
-           photon lookup radii, and a record's gather was even): far less raw noise
-           in rooms lit through a door, but an error a denoiser does not remove.
-           ``"first_hit"``: the paper's interpolation at the first diffuse vertex
-           (less noise at few samples, but record-sized blotches that stay). With
-           any of them, the cache is view independent: a function of the scene, the
-           settings and ``seed`` only.
+           it can trust them (a record whose gather met no glass, metal or glossy
+           surface, found photons near where its rays landed and gathered evenly),
+           and is path-traced elsewhere; not in scenes with delta lights, nor in a
+           render that outputs the denoiser's guides (``aovs`` with ``albedo`` and
+           ``normal``), which is rendered as by ``"final_gather"``.
+           ``"final_gather"``: the first diffuse vertex is always path-traced (one
+           BSDF sample, MIS with the emitters) and the cache, which then also holds
+           direct light, is read where that ray lands, unless it lands closer than
+           a record radius (corners, contacts, gaps: traced once more, up to 3
+           times). Its error is noise, which a denoiser removes, and it keeps
+           converging. ``"first_hit"``: the paper's interpolation at the first
+           diffuse vertex (less noise at few samples, but record-sized blotches
+           that stay). With any of them, the cache is view independent: a function
+           of the scene, the settings and ``seed`` only.
        * - ``aovs``
          - string
          - ``""``
@@ -312,6 +315,7 @@ class _PMICMethods:
             prepared.key = key
             prepared.stats["cache_loaded_from"] = cache_file
             prepared.stats["time_cache_load"] = time.perf_counter() - t0
+            survey_first_reads(scene, self.settings, prepared)  # (not kept in the file)
         else:
             prepared = pipeline.prepare(scene, self.settings, key, pipeline.Progress(self.progress))
             if prepared.index is not None:

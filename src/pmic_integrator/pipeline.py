@@ -689,7 +689,9 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
     # pay: reads back from the device) made here, once: renders then start without
     # a host read (RecordIndex.remembered; benchmarks/kernel_report.py).
     from .render.config import PathConfig
+    from .render.reads import survey_first_reads
 
+    survey_first_reads(scene, settings, replace(prepared, index=index))
     PathConfig.of(settings, replace(prepared, index=index), own_render=True)
     progress.done("cache", f"{index.records.count} records")
     return index, stats

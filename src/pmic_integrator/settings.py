@@ -114,7 +114,7 @@ class Settings:
     direct_samples: int = 4
     guiding: bool = True
     seed: int = 0
-    estimator: str = "final_gather"
+    estimator: str = "adaptive"
     aovs: str = ""
     cache_file: str = ""
 
@@ -176,6 +176,13 @@ class Settings:
             if name not in AOVS:
                 _fail("aovs", f"a comma-separated list of {', '.join(AOVS)} (or 'all')", self.aovs)
         return tuple(a for a in AOVS if a in asked)
+
+    @property
+    def denoiser_guides(self) -> bool:
+        """The render outputs a denoiser's guides (``aovs`` holds albedo and normal):
+        its image is meant for a denoiser, and the adaptive estimator reads no records
+        at first hits (render.config.first_reads)."""
+        return "albedo" in self.aov_list and "normal" in self.aov_list
 
     @property
     def aov_channels(self) -> list[str]:
