@@ -1090,6 +1090,19 @@ class RecordIndex:
             return None
         return self.scene, self.records, opaque_float(self.lift)
 
+    def sees(self, x, n, record: mi.UInt32, active=True) -> mi.Bool:
+        """Whether ``record`` sees (x, n), tested as interpolation tests the records it
+        reads (:func:`hidden_from`: a shadow ray only beyond the nearest surface the
+        record's gather met, lifted ``lift`` off both surfaces)."""
+        active = mi.Bool(active)
+        visibility = self._visibility()
+        if visibility is None:
+            return active
+        scene, records, lift = visibility
+        rp, rn, rr = self._record_geometry(record, active)
+        obstacle = obstacle_towards(records, record, rp, x, active)
+        return active & ~hidden_from(scene, x, n, rp, rn, rr * self.max_error, obstacle, lift, active)
+
     def covered(self, x, n, active=True) -> mi.Bool:
         """Is (x, n) within the reach a·R of some record (Ward's test) that sees it?"""
         r = self.records
