@@ -585,7 +585,7 @@ def record_surroundings(scene, source: GatherSource, records: "CacheRecords", se
     lobe; emitters aside), and, of its rays that hit a diffuse surface, the share
     with a precomputed photon within one lookup radius of the hit
     (:meth:`GatherSource.photon_near`). What the adaptive estimator asks of a record
-    before reading it at a camera path's first hit (render.reads.first_read_pays)."""
+    before reading it at a camera path's first hit (render.reads.survey_first_reads)."""
     from .bsdfs import lobes_separable
     from .cases import lobes_of
 

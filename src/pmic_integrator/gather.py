@@ -272,13 +272,18 @@ class GatherSource:
             steps.append((self.far_photons, self.far_grid, self.far_grid.cell_size, False))
         return steps
 
+    @property
+    def lookup_radius(self) -> float:
+        """The global map's lookup radius (``radius`` spans SEARCH_REACH of them)."""
+        return self.radius / self.SEARCH_REACH
+
     def photon_near(self, p: mi.Point3f, n: mi.Vector3f, active) -> mi.Bool:
         """Whether a precomputed photon on the surface at ``p`` lies within one lookup
         radius (search steps 1-2): hits whose gather reads light from where it arrives,
         not from a photon the wider steps found far off."""
         near = self.near_grid is not None
         photons, grid = (self.near_photons, self.near_grid) if near else (self.photons, self.grid)
-        return nearest_photon(photons, grid, p, n, self.radius / self.SEARCH_REACH, active)[1] & active
+        return nearest_photon(photons, grid, p, n, self.lookup_radius, active)[1] & active
 
     def _read(self, photons: PhotonMap, index, hit, caustic, without_delta: bool) -> mi.Color3f:
         """Irradiance of photon ``index`` where ``hit``: its caustic irradiance in the
@@ -299,7 +304,7 @@ class GatherSource:
         lifted off the surface (:data:`VISIBILITY_LIFT`, more where the photon lies off
         the query's plane, up to a bound: :data:`VISIBILITY_LIFT_PER_HEIGHT`), tells
         them apart."""
-        radius = self.radius / self.SEARCH_REACH  # (the lookup radius)
+        radius = self.lookup_radius
         height = VISIBILITY_LIFT * radius
         extra = dr.minimum(dr.abs(dr.dot(position - p, n)) * VISIBILITY_LIFT_PER_HEIGHT,
                            opaque_float(VISIBILITY_LIFT_MAX * radius))
