@@ -579,19 +579,30 @@ SURROUNDINGS_STRATA = (8, 8)
 
 def record_surroundings(scene, source: GatherSource, records: "CacheRecords", seed: int,
                         offset: float):
-    """``(glossy_share, photon_support)`` of each record, from SURROUNDINGS_STRATA
-    cosine rays: the share of its rays whose first hit is a surface that its gather
-    cannot read as diffuse (glass, metal, glossy or principled: no separable diffuse
-    lobe; emitters aside), and, of its rays that hit a diffuse surface, the share
-    with a precomputed photon within one lookup radius of the hit
-    (:meth:`GatherSource.photon_near`). What the adaptive estimator asks of a record
-    before reading it at a camera path's first hit (render.reads.survey_first_reads)."""
+    """``(glossy_share, photon_support, glossy_light)`` of each record, from
+    SURROUNDINGS_STRATA cosine rays of its own (not its gather's):
+
+    - the share of its rays whose first hit is a surface that its gather cannot read
+      as diffuse (glass, metal, glossy or principled: no separable diffuse lobe;
+      emitters aside);
+    - of its rays that hit a diffuse surface, the share with a precomputed photon
+      within one lookup radius of the hit (:meth:`GatherSource.photon_near`);
+    - the share of the light reaching the record from those first hits that is
+      emitters' light reflected by the glossy ones (one BSDF sample at each): light
+      that its gather reads as if they were diffuse. The rest is the diffuse hits'
+      albedo times their photon's irradiance.
+
+    What the adaptive estimator asks of a record before reading it at a camera path's
+    first hit (render.reads.survey_first_reads)."""
     from .bsdfs import lobes_separable
     from .cases import lobes_of
 
     about = records.shading_normal
-    ray, owner, _, _, _, _ = _stratified_rays(records.position, records.normal, SURROUNDINGS_STRATA,
-                                              seed, streams.RECORD_SURROUNDINGS, offset, about)
+    ray, owner, _, _, _, rng = _stratified_rays(records.position, records.normal, SURROUNDINGS_STRATA,
+                                                seed, streams.RECORD_SURROUNDINGS, offset, about)
+    wavelengths, wavelength_weight = spectra.sample_wavelengths(rng.next_float32())
+    if mi.is_spectral:  # (the albedo and the reflected light are read at them)
+        ray.wavelengths = wavelengths
     si = scene.ray_intersect(ray)
     valid = si.is_valid()
     bsdf = si.bsdf(ray)
@@ -599,7 +610,12 @@ def record_surroundings(scene, source: GatherSource, records: "CacheRecords", se
     diffuse = valid & lobes.diffuse & lobes_separable(bsdf, si, valid & lobes.mixed)
     glossy = valid & ~diffuse & (si.shape.emitter() == None)  # noqa: E711
     n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)
-    supported = source.photon_near(si.p, n, diffuse)
+    irradiance, supported = source.photon_near(si.p, n, diffuse)
+    albedo = mi.luminance(spectra.to_rgb(bsdf.eval_diffuse_reflectance(si, supported) * wavelength_weight,
+                                         ray.wavelengths))
+    diffuse_light = albedo * mi.luminance(irradiance)
+    diffuse_light = dr.select(supported & dr.isfinite(diffuse_light), diffuse_light, 0.0)
+    glossy_light = _reflected_emission(scene, si, bsdf, rng, glossy, wavelength_weight)
     rays = SURROUNDINGS_STRATA[0] * SURROUNDINGS_STRATA[1]
 
     def count(mask):
@@ -607,8 +623,31 @@ def record_surroundings(scene, source: GatherSource, records: "CacheRecords", se
 
     glossy_share = count(glossy) * (1.0 / rays)
     support = count(supported) / dr.maximum(count(diffuse), 1.0)
-    dr.eval(glossy_share, support)
-    return glossy_share, support
+    # (Sums over the same rays: π / rays cancels.)
+    reflected = block_sum(glossy_light, rays)
+    total = reflected + block_sum(diffuse_light / math.pi, rays)
+    glossy_light_share = dr.select(total > 0, reflected / dr.maximum(total, 1e-30), 0.0)
+    dr.eval(glossy_share, support, glossy_light_share)
+    return glossy_share, support, glossy_light_share
+
+
+def _reflected_emission(scene, si, bsdf, rng, active, wavelength_weight) -> mi.Float:
+    """Luminance of the emitters' light that the BSDF at ``si`` reflects back along the
+    ray that found it: one emitter sample (with its shadow ray), and one BSDF sample
+    for delta lobes (glass, a mirror), which emitter samples cannot meet (an
+    environment where it leaves the scene)."""
+    ctx = mi.BSDFContext()
+    ds, emitted = scene.sample_emitter_direction(si, mi.Point2f(rng.next_float32(), rng.next_float32()),
+                                                 True, active)
+    light = bsdf.eval(ctx, si, si.to_local(ds.d), active) * emitted
+    sample, weight = bsdf.sample(ctx, si, rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
+                                 active)
+    delta = active & mi.has_flag(sample.sampled_type, mi.BSDFFlags.Delta) & (sample.pdf > 0)
+    hit = scene.ray_intersect(si.spawn_ray(si.to_world(sample.wo)), delta)
+    emitter = hit.emitter(scene, delta)
+    light += dr.select(delta & (emitter != None), weight * emitter.eval(hit, delta), 0.0)  # noqa: E711
+    light = mi.luminance(spectra.to_rgb(light * wavelength_weight, si.wavelengths))
+    return dr.select(active & dr.isfinite(light), light, 0.0)
 
 
 def harmonic_mean_distance(scene, p: mi.Point3f, n: mi.Vector3f, strata, seed: int,

@@ -277,13 +277,16 @@ class GatherSource:
         """The global map's lookup radius (``radius`` spans SEARCH_REACH of them)."""
         return self.radius / self.SEARCH_REACH
 
-    def photon_near(self, p: mi.Point3f, n: mi.Vector3f, active) -> mi.Bool:
-        """Whether a precomputed photon on the surface at ``p`` lies within one lookup
-        radius (search steps 1-2): hits whose gather reads light from where it arrives,
-        not from a photon the wider steps found far off."""
+    def photon_near(self, p: mi.Point3f, n: mi.Vector3f, active):
+        """``(irradiance, found)``: whether a precomputed photon on the surface at ``p``
+        lies within one lookup radius (search steps 1-2: hits whose gather reads light
+        from where it arrives, not from a photon the wider steps found far off), and
+        the nearest one's precomputed irradiance (0 where none; no visibility test)."""
         near = self.near_grid is not None
         photons, grid = (self.near_photons, self.near_grid) if near else (self.photons, self.grid)
-        return nearest_photon(photons, grid, p, n, self.lookup_radius, active)[1] & active
+        index, found = nearest_photon(photons, grid, p, n, self.lookup_radius, active)
+        found &= active
+        return dr.gather(mi.Color3f, photons.irradiance, index, found), found
 
     def _read(self, photons: PhotonMap, index, hit, caustic, without_delta: bool) -> mi.Color3f:
         """Irradiance of photon ``index`` where ``hit``: its caustic irradiance in the

@@ -68,6 +68,13 @@ def _coat_read(v: Vertex, trust, covered, response):
 #: first hit, the glossy Cornell box came out 0.979 of its reference (final gather
 #: 0.999), the torus in its glass cube 0.984.
 FIRST_READ_MAX_GLOSSY = 0.1
+#: ...and at most this share of the light its rays find at their first hits is the
+#: emitters' light reflected by such surfaces (one emitter sample and one BSDF sample
+#: at each): a glossy floor or a brass box reflects a light onto a wall from a small
+#: part of the wall's hemisphere, which a record's gather reads as if it were diffuse.
+#: Without this test the glossy Cornell box's default image had record-sized patches
+#: 10-20 % dark at the top of its back wall (docs/tuning.md, "First reads").
+FIRST_READ_MAX_GLOSSY_LIGHT = 0.02
 #: ...and at least this share of its rays' diffuse hits have a precomputed photon
 #: within one lookup radius: where photons are too sparse (the lamp room's shades, a
 #: sunlit dining room, the torus's base) the gather reads photons found far off. At
@@ -86,7 +93,8 @@ FIRST_READ_MAX_VARIANCE = 8.0
 def survey_first_reads(scene, settings, prepared) -> None:
     """Decide, once per cache, which records the adaptive estimator may read at a
     camera path's first diffuse vertex (``RecordIndex.first_readable``): those whose
-    surroundings pass FIRST_READ_MAX_GLOSSY and FIRST_READ_MIN_SUPPORT and whose
+    surroundings pass FIRST_READ_MAX_GLOSSY, FIRST_READ_MAX_GLOSSY_LIGHT and
+    FIRST_READ_MIN_SUPPORT and whose
     gather was even (FIRST_READ_MAX_VARIANCE) and found bounced light. None in a scene
     with delta lights: there the sunlit classroom kind read 0.93 of its reference at
     the first hit (final gather 0.98), the records' bounced light from a sharp sunlit
@@ -99,9 +107,10 @@ def survey_first_reads(scene, settings, prepared) -> None:
             index.first_readable is not None or prepared.gather_source is None or \
             prepared.info.has_delta_emitter or not index.guides:
         return
-    glossy, support = record_surroundings(scene, prepared.gather_source, index.records,
-                                          settings.seed, prepared.ray_offset)
+    glossy, support, glossy_light = record_surroundings(scene, prepared.gather_source, index.records,
+                                                        settings.seed, prepared.ray_offset)
     readable = (glossy <= FIRST_READ_MAX_GLOSSY) & (support >= FIRST_READ_MIN_SUPPORT) & \
+        (glossy_light <= FIRST_READ_MAX_GLOSSY_LIGHT) & \
         (index.bounce_variance() <= FIRST_READ_MAX_VARIANCE) & \
         (mi.luminance(index.records.irradiance) > 0)
     dr.eval(readable)
