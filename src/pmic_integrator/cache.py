@@ -293,9 +293,7 @@ def _covered_by(records_p, records_n, records_r, grid: BallGrid, query_p, query_
         rr = dr.gather(mi.Float, records_r, index, valid)
         ok = valid & covers(query_p, query_n, rp, rn, rr, max_error)
         if visibility is not None:
-            scene, records, lift = visibility
-            ob = obstacle_towards(records, index, rp, query_p, ok)
-            ok &= ~hidden_from(scene, query_p, query_n, rp, rn, rr * max_error, ob, lift, ok)
+            ok &= ~hidden_record(visibility, index, rp, rn, rr * max_error, query_p, query_n, ok)
         if earlier_than is not None:
             ok &= dr.gather(mi.UInt32, priority, index, ok) < earlier_than
         return found | ok
@@ -390,6 +388,16 @@ def hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active) ->
     margin = OBSTACLE_MARGIN * obstacle
     test = active & (rec_reach > margin) & (dr.norm(target - origin) > margin)
     return segment_blocked(scene, origin, target, test, past=PAST_TARGET_LIFTS * lift)
+
+
+def hidden_record(visibility, index: mi.UInt32, rec_p, rec_n, rec_reach, x, n, active,
+                  frame_normal: mi.Vector3f = None) -> mi.Bool:
+    """:func:`hidden_from` for record ``index`` of ``visibility`` = (scene, records,
+    lift) (:meth:`RecordIndex._visibility`), with its nearest gather hit towards x
+    (:func:`obstacle_towards`): the test every reader of the records makes."""
+    scene, records, lift = visibility
+    obstacle = obstacle_towards(records, index, rec_p, x, active, frame_normal=frame_normal)
+    return hidden_from(scene, x, n, rec_p, rec_n, rec_reach, obstacle, lift, active)
 
 
 def placement_priority(index: mi.UInt32) -> mi.UInt32:
@@ -1137,10 +1145,8 @@ class RecordIndex:
         visibility = self._visibility()
         if visibility is None:
             return active
-        scene, records, lift = visibility
         rp, rn, rr = self._record_geometry(record, active)
-        obstacle = obstacle_towards(records, record, rp, x, active)
-        return active & ~hidden_from(scene, x, n, rp, rn, rr * self.max_error, obstacle, lift, active)
+        return active & ~hidden_record(visibility, record, rp, rn, rr * self.max_error, x, n, active)
 
     def covered(self, x, n, active=True) -> mi.Bool:
         """Is (x, n) within the reach a·R of some record (Ward's test) that sees it?"""
@@ -1222,10 +1228,8 @@ class RecordIndex:
             if packed is not None:  # (RecordIndex.pack: one packet load)
                 b = dr.gather(mi.ArrayXf, packed, index, ok, shape=(PACKED_BODY, dr.width(index)))
                 if visibility is not None:
-                    scene, records, lift = visibility
-                    ob = obstacle_towards(records, index, rp, x, ok,
-                                          frame_normal=mi.Vector3f(b[27], b[28], b[29]))
-                    ok &= ~hidden_from(scene, x, n, rp, rn, rr * max_error, ob, lift, ok)
+                    ok &= ~hidden_record(visibility, index, rp, rn, rr * max_error, x, n, ok,
+                                         frame_normal=mi.Vector3f(b[27], b[28], b[29]))
                 ext = [b[c] + dr.dot(mi.Vector3f(b[6 + 3 * c], b[7 + 3 * c], b[8 + 3 * c]), dx)
                        + dr.dot(mi.Vector3f(b[15 + 3 * c], b[16 + 3 * c], b[17 + 3 * c]), shading_n)
                        for c in range(3)]
@@ -1234,9 +1238,7 @@ class RecordIndex:
                     d *= dr.maximum(1.0 + dr.dot(mi.Vector3f(b[24], b[25], b[26]), shading_n), 0.0)
             else:
                 if visibility is not None:
-                    scene, records, lift = visibility
-                    ob = obstacle_towards(records, index, rp, x, ok)
-                    ok &= ~hidden_from(scene, x, n, rp, rn, rr * max_error, ob, lift, ok)
+                    ok &= ~hidden_record(visibility, index, rp, rn, rr * max_error, x, n, ok)
                 e = dr.gather(mi.Color3f, r.irradiance, index, ok)
                 # The rotational gradient was gathered about the record's shading normal:
                 # it extrapolates to the query's (the plane and Ward tests above keep the

@@ -691,8 +691,9 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
     from .render.config import PathConfig
     from .render.reads import survey_first_reads
 
-    survey_first_reads(scene, settings, replace(prepared, index=index))
-    PathConfig.of(settings, replace(prepared, index=index), own_render=True)
+    built = replace(prepared, index=index)
+    survey_first_reads(scene, settings, built)
+    PathConfig.of(settings, built, own_render=True)
     progress.done("cache", f"{index.records.count} records")
     return index, stats
 
