@@ -643,10 +643,12 @@ def _reflected_emission(scene, si, bsdf, rng, active, wavelength_weight) -> mi.F
     """Luminance of the emitters' light that the BSDF at ``si`` reflects back along the
     ray that found it: one emitter sample (with its shadow ray), and one BSDF sample
     for delta lobes (glass, a mirror), which emitter samples cannot meet (an
-    environment where it leaves the scene)."""
+    environment where it leaves the scene). The emitter sample is
+    :func:`emission.sample_emitter_direction`'s, as everywhere else: the same choice of
+    light whatever order Mitsuba loaded them in, and a sky's shadow rays unbounded."""
     ctx = mi.BSDFContext()
-    ds, emitted = scene.sample_emitter_direction(si, mi.Point2f(rng.next_float32(), rng.next_float32()),
-                                                 True, active)
+    ds, emitted = emission.sample_emitter_direction(scene, si, mi.Point2f(rng.next_float32(), rng.next_float32()),
+                                                    True, active)
     light = bsdf.eval(ctx, si, si.to_local(ds.d), active) * emitted
     sample, weight = bsdf.sample(ctx, si, rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
                                  active)
