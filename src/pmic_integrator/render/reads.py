@@ -98,13 +98,15 @@ def survey_first_reads(scene, settings, prepared) -> None:
     gather was even (FIRST_READ_MAX_VARIANCE) and found bounced light. None in a scene
     with delta lights: there the sunlit classroom kind read 0.93 of its reference at
     the first hit (final gather 0.98), the records' bounced light from a sharp sunlit
-    patch too dark. Other estimators, and caches already surveyed, are left as
-    they are."""
+    patch too dark. Other estimators, renders meant for a denoiser (which read no
+    records at first vertices: render.config.first_reads; the survey was 1-2 s of
+    their cache stage in Sponza and the white room) and caches already surveyed are
+    left as they are."""
     from ..cache import record_surroundings
 
     index = prepared.index
-    if settings.estimator != "adaptive" or settings.bounded or index is None or \
-            index.first_readable is not None or prepared.gather_source is None or \
+    if settings.estimator != "adaptive" or settings.bounded or settings.denoiser_guides or \
+            index is None or index.first_readable is not None or prepared.gather_source is None or \
             prepared.info.has_delta_emitter or not index.guides:
         return
     glossy, support, glossy_light = record_surroundings(scene, prepared.gather_source, index.records,
