@@ -40,19 +40,27 @@ def defers_caustics(settings: Settings, prepared: PreparedScene) -> bool:
         MAX_TRACED_BOUNCES <= DEFERRED_READS
 
 
-def first_reads(settings: Settings, prepared: PreparedScene) -> bool:
-    """Whether the adaptive estimator may read records at first vertices in this render
-    (records that guide, no depth bound, some record that qualifies), and the image is
-    not meant for a denoiser (Settings.denoiser_guides). A denoiser removes the traced
+def first_reads_allowed(settings: Settings, prepared: PreparedScene) -> bool:
+    """Whether this render's settings and cache let the adaptive estimator read records
+    at first vertices at all: records that guide, no depth bound, and an image not
+    meant for a denoiser (Settings.denoiser_guides). A denoiser removes the traced
     first bounce's noise but keeps the records' smooth error: after OIDN, reads at the
     first hit left the white room at 9.9e-3 relMSE against the final gather's 5.4e-3,
-    the lamp room at 3.1e-2 against 1.3e-2 (docs/tuning.md, "First reads")."""
-    from .reads import any_first_reads  # (reads builds on this module)
-
+    the lamp room at 3.1e-2 against 1.3e-2 (docs/tuning.md, "First reads"). Asked by
+    :func:`first_reads` and, before it, by the survey that picks the records
+    (reads.survey_first_reads)."""
     index = prepared.index
     return settings.final_gather_camera and settings.estimator == "adaptive" and \
         not settings.bounded and not settings.denoiser_guides and index is not None and \
-        index.guides and any_first_reads(index)
+        index.guides
+
+
+def first_reads(settings: Settings, prepared: PreparedScene) -> bool:
+    """Whether this render reads records at first vertices: where they are allowed
+    (:func:`first_reads_allowed`) and some record qualifies."""
+    from .reads import any_first_reads  # (reads builds on this module)
+
+    return first_reads_allowed(settings, prepared) and any_first_reads(prepared.index)
 
 
 @dataclass(frozen=True)

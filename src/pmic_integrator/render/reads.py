@@ -16,7 +16,7 @@ from .._jit import only_where
 from ..bsdfs import (diffuse_response, near_diffuse, non_diffuse_context,
                      peak_within, response_azimuths, tilted_normal)
 from ..cases import CAMERA_PEAK_RATIO
-from .config import MAX_TRACED_BOUNCES, PathContext
+from .config import MAX_TRACED_BOUNCES, PathContext, first_reads_allowed
 from .estimators import cache_lookup
 from .state import PathState
 from .vertex import Reads, Vertex
@@ -98,16 +98,15 @@ def survey_first_reads(scene, settings, prepared) -> None:
     gather was even (FIRST_READ_MAX_VARIANCE) and found bounced light. None in a scene
     with delta lights: there the sunlit classroom kind read 0.93 of its reference at
     the first hit (final gather 0.98), the records' bounced light from a sharp sunlit
-    patch too dark. Other estimators, renders meant for a denoiser (which read no
-    records at first vertices: render.config.first_reads; the survey was 1-2 s of
-    their cache stage in Sponza and the white room) and caches already surveyed are
-    left as they are."""
+    patch too dark. Renders that may make no first reads (config.first_reads_allowed:
+    other estimators, a depth bound, an image meant for a denoiser, where the survey
+    was 1-2 s of the cache stage in Sponza and the white room) and caches already
+    surveyed are left as they are."""
     from ..cache import record_surroundings
 
     index = prepared.index
-    if settings.estimator != "adaptive" or settings.bounded or settings.denoiser_guides or \
-            index is None or index.first_readable is not None or prepared.gather_source is None or \
-            prepared.info.has_delta_emitter or not index.guides:
+    if not first_reads_allowed(settings, prepared) or index.first_readable is not None or \
+            prepared.gather_source is None or prepared.info.has_delta_emitter:
         return
     glossy, support, glossy_light = record_surroundings(scene, prepared.gather_source, index.records,
                                                         settings.seed, prepared.ray_offset)
