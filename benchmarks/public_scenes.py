@@ -143,8 +143,8 @@ def measure(name: str, scene, found, spp: int, log, spec=None, path_seeds: int =
     row["speedup_oidn"] = (t_path_dn if math.isfinite(t_path_dn) else max(t for t, _ in ladder)) / pmic_dn.seconds
     row["speedup_oidn_extrapolated"] = extrapolated
     row["path_oidn_ladder"] = ladder
-    row["stats"] = {k: v for k, v in pmic.stats.items() if isinstance(v, (int, float, str))}
-    row["stats_oidn"] = {k: v for k, v in pmic_dn.stats.items() if isinstance(v, (int, float, str))}
+    for key, run in (("stats", pmic), ("stats_oidn", pmic_dn)):  # (pmic's stage times, counts)
+        row[key] = {k: v for k, v in run.stats.items() if isinstance(v, (int, float, str))}
     compare.write_strip(RESULTS / f"public_{name}.png", results, ref)
     log(f"{name}: {json.dumps({k: row[k] for k in ('speedup', 'speedup_oidn')})}")
     return row

@@ -21,7 +21,8 @@ well and the mean over the images, with its standard error (sd / √seeds), tell
 from one image's luck: where a few pixels hold very bright light (a sun's glint in a
 mirror), one 16-spp image's mean moves by a percent from one render seed to the next.
 
-Writes ``benchmarks/results/seed_spread_<res>.{json,md}``. The luminance ratio is
+Writes ``benchmarks/results/seed_spread_<res>.{json,md}`` (``seed_spread_public`` with
+``--public``). The luminance ratio is
 :func:`pmic_integrator.metrics.luminance_ratio` (Rec. 709 weights); the table written
 up to commit 3439931 holds the ratio of the plain means of R, G and B.
 """
