@@ -190,3 +190,41 @@ def test_a_render_meant_for_a_denoiser_does_not_survey_its_records():
         integrator.build_cache(scene)
         surveyed[aovs] = integrator.prepared.index.first_readable is not None
     assert surveyed == {"albedo,normal": False, "": True}
+
+
+def _budget_cache(monkeypatch, aovs, **params):
+    """The door-ajar kind's cache, its gathers over a gather budget of one ray
+    (pipeline.GATHER_BUDGET_RAYS), built by an integrator with ``aovs``."""
+    from pmic_integrator import pipeline
+
+    monkeypatch.setattr(pipeline, "GATHER_BUDGET_RAYS", 1)
+    scene = mi.load_dict(kinds.two_rooms(size=(24, 16)))
+    integrator = mi.load_dict({"type": "pmic", "gather_rays": 64, "aovs": aovs, **params})
+    return scene, integrator, integrator.build_cache(scene)
+
+
+@pytest.mark.parametrize("aovs", ["albedo,normal", ""])
+def test_records_over_the_gather_budget_gather_one_round_where_no_first_hit_reads_them(monkeypatch, aovs):
+    """A render meant for a denoiser reads records only one traced bounce away: over
+    the budget its records keep the first round of their gathers (a quarter of the
+    rays); the same render without the guides reads them at first hits and gathers
+    every ray."""
+    _, _, stats = _budget_cache(monkeypatch, aovs)
+    assert stats["records"] > 0
+    assert stats["records_partial"] == (stats["records"] if aovs else 0)
+
+
+def test_a_cache_file_of_first_round_records_is_completed_for_first_reads(monkeypatch, tmp_path):
+    """Read by a render that reads records at first hits, a file of a denoiser's cache
+    (records that gathered one round) has its records gather the rest; read by another
+    denoiser's render, it is used as it is."""
+    path = str(tmp_path / "guides.npz")
+    scene, integrator, _ = _budget_cache(monkeypatch, "albedo,normal")
+    saved = np.array(integrator.prepared.index.records.irradiance)
+    integrator.save_cache(path)
+    for aovs, completed in (("albedo,normal", False), ("", True)):
+        reader = mi.load_dict({"type": "pmic", "gather_rays": 64, "aovs": aovs, "cache_file": path})
+        reader.build_cache(scene)
+        records = reader.prepared.index.records
+        assert bool(np.any(np.array(records.partial))) != completed
+        assert (not np.array_equal(np.array(records.irradiance), saved)) == completed

@@ -148,6 +148,9 @@ class CacheRecords:
     #: 0 where filled in): with ``irradiance``, the relative variance of one
     #: cosine-sampled bounce at the record (:meth:`RecordIndex.bounce_variance`).
     ray_moment: mi.Float = None
+    #: Per record, whether it gathered only the first round of its rays
+    #: (pipeline.GATHER_BUDGET_RAYS; None: none did).
+    partial: mi.Bool = None
 
     @property
     def count(self) -> int:
@@ -180,6 +183,8 @@ class CacheRecords:
             return dr.zeros(mi.Float, self.count * GUIDE_BINS)
         if name == "ray_moment":
             return dr.zeros(mi.Float, self.count)
+        if name == "partial":
+            return dr.zeros(mi.Bool, self.count)
         return dr.repeat(self._filled("obstacle"), OBSTACLE_SECTORS)  # obstacle_sectors
 
     def extend(self, other: "CacheRecords") -> "CacheRecords":
@@ -222,7 +227,45 @@ class CacheRecords:
             nearer(self.obstacle, other.obstacle), self.shading_normal,
             _mix_cdfs(self.guide, other.guide, w), _mix_cdfs(self.sky_guide, other.sky_guide, w),
             nearer(self.obstacle_sectors, other.obstacle_sectors),
-            None if self.ray_moment is None or other.ray_moment is None else mean(self.ray_moment, other.ray_moment))
+            None if self.ray_moment is None or other.ray_moment is None else mean(self.ray_moment, other.ray_moment),
+            partial=self.partial)
+
+    def _per_record(self, value) -> int:
+        """How many entries per record a field's ``value`` holds (a guide: GUIDE_BINS)."""
+        return dr.width(value) // max(self.count, 1)
+
+    def take(self, lanes: mi.UInt32) -> "CacheRecords":
+        """The records at ``lanes``, every field."""
+        def one(value):
+            k = self._per_record(value)
+            entries = lanes if k == 1 else dr.repeat(lanes * k, k) + dr.tile(dr.arange(mi.UInt32, k), dr.width(lanes))
+            return dr.gather(type(value), value, entries)
+        return self._mapped(one)
+
+    def put(self, lanes: mi.UInt32, part: "CacheRecords") -> "CacheRecords":
+        """These records with those at ``lanes`` replaced by ``part``'s (same fields)."""
+        def one(value, new):
+            k = self._per_record(value)
+            entries = lanes if k == 1 else dr.repeat(lanes * k, k) + dr.tile(dr.arange(mi.UInt32, k), dr.width(lanes))
+            out = type(value)(value)
+            dr.scatter(out, new, entries)
+            return out
+        return self._mapped(one, part)
+
+    def _mapped(self, fn, other: "CacheRecords" = None) -> "CacheRecords":
+        """Records whose every field (every item of a tuple field) is ``fn`` of this
+        one's (and ``other``'s); fields that are None stay None."""
+        def apply(mine, theirs):
+            if mine is None:
+                return None
+            return fn(mine) if other is None else fn(mine, theirs)
+        out = {}
+        for f in fields(CacheRecords):
+            mine = getattr(self, f.name)
+            theirs = None if other is None else getattr(other, f.name)
+            out[f.name] = tuple(apply(a, None if theirs is None else theirs[i]) for i, a in enumerate(mine)) \
+                if isinstance(mine, tuple) else apply(mine, theirs)
+        return CacheRecords(**out)
 
     def nbytes(self) -> int:
         return 4 * (3 + 3 + 1 + 3 + 18 + (self.obstacle is not None)
@@ -230,7 +273,7 @@ class CacheRecords:
                     + GUIDE_BINS * (self.guide is not None)
                     + GUIDE_BINS * (self.sky_guide is not None)
                     + OBSTACLE_SECTORS * (self.obstacle_sectors is not None)
-                    + (self.ray_moment is not None)) * self.count
+                    + (self.ray_moment is not None) + (self.partial is not None)) * self.count
 
 
 def block_sum(values, block: int, op: str = "sum"):

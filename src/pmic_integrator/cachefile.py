@@ -84,7 +84,9 @@ FORMAT = "pmic-cache"
 #:     every camera of its scene.
 #: 30: records keep their gather's mean squared ray luminance (CacheRecords.ray_moment,
 #:     the adaptive estimator's test of a record's own noise).
-VERSION = 30
+#: 31: records keep whether they owe the rest of their gather (CacheRecords.partial,
+#:     pipeline.GATHER_BUDGET_RAYS); gathers' near bounces weight emission by MIS.
+VERSION = 31
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",

@@ -392,6 +392,11 @@ class GatherWalk:
     #: and right after a near bounce's delta sample (its emitter sample holds the rest).
     count_emission: mi.Bool
     crossed: mi.Bool  #: went through an inseparable BSDF
+    #: Where a near bounce sampled a non-delta lobe: the emission met next is weighted
+    #: against that vertex's emitter sample (MIS), from its position and the BSDF
+    #: sample's density (0: no weighting).
+    near_p: mi.Point3f
+    near_pdf: mi.Float
 
     @staticmethod
     def start(ray: mi.Ray3f, rng: mi.PCG32, active) -> "GatherWalk":
@@ -401,7 +406,8 @@ class GatherWalk:
                           throughput=dr.full(mi.Spectrum, 1.0, lanes),
                           distance=dr.full(mi.Float, dr.inf, lanes),
                           bounce=dr.zeros(mi.UInt32, lanes), near_bounces=dr.zeros(mi.UInt32, lanes),
-                          count_emission=dr.zeros(mi.Bool, lanes), crossed=dr.zeros(mi.Bool, lanes))
+                          count_emission=dr.zeros(mi.Bool, lanes), crossed=dr.zeros(mi.Bool, lanes),
+                          near_p=dr.zeros(mi.Point3f, lanes), near_pdf=dr.zeros(mi.Float, lanes))
 
 
 @dataclass
@@ -480,6 +486,8 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
         # emitter sample.
         seen = walk.active & walk.count_emission
         emitted = throughput * si.emitter(scene, seen).eval(si, seen)
+        if near_on:
+            emitted *= _after_near_bounce(scene, si, walk, seen)
         radiance += finite(emitted, seen)
     active = walk.active & si.is_valid()
     distance = dr.select(active & (bounce == 0), si.t, walk.distance)
@@ -513,9 +521,14 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
         near = lit & (si.t < near_distance) & (near_bounces < NEAR_HIT_BOUNCES)
         lit &= ~near
         u_em = mi.Point2f(rng.next_float32(), rng.next_float32())
+        from mitsuba.ad.integrators.common import mis_weight  # (needs a variant)
+
         ds_near, em_near = sample_emitter_direction(scene, si, u_em, True, near)
-        f_near = bsdf.eval(ctx_all, si, si.to_local(ds_near.d), near & (ds_near.pdf > 0))
-        lit_near = throughput * f_near * em_near
+        f_near, pdf_near = bsdf.eval_pdf(ctx_all, si, si.to_local(ds_near.d), near & (ds_near.pdf > 0))
+        # Weighted against the continuation's BSDF sample, which counts the emission it
+        # meets (NEAR_HIT_MIS).
+        mis = dr.select(ds_near.delta, 1.0, mis_weight(ds_near.pdf, pdf_near))
+        lit_near = throughput * f_near * em_near * mis
         radiance += finite(lit_near, near & (ds_near.pdf > 0))
         if source.photons.irradiance_caustic is not None:
             caustic_lanes = near
@@ -562,11 +575,12 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
         bs_near, weight_near = bsdf.sample(ctx_all, si, u1, u2, near)
         bs[near] = bs_near
         weight[near] = weight_near
-        count_emission = dr.select(near, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
-                                   mi.Bool(caustics) | crossed)
+        count_emission = near | mi.Bool(caustics) | crossed
+        near_pdf = dr.select(near & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta), bs.pdf, 0.0)
         near_bounces = dr.select(near, near_bounces + 1, near_bounces)
     else:
         count_emission = mi.Bool(caustics) | crossed
+        near_pdf = mi.Float(0.0)
     throughput = throughput * weight
     active = (rest | near) & (bs.pdf > 0) & (dr.max(throughput) > 0) & dr.all(dr.isfinite(throughput))
     if GATHER_ROULETTE:
@@ -578,8 +592,23 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
     walk = GatherWalk(ray=si.spawn_ray(si.to_world(bs.wo)), rng=rng, active=active,
                       radiance=radiance, throughput=throughput, distance=distance,
                       bounce=bounce + 1, near_bounces=near_bounces,
-                      count_emission=count_emission, crossed=crossed)
+                      count_emission=count_emission, crossed=crossed, near_p=mi.Point3f(si.p),
+                      near_pdf=near_pdf)
     return walk, asked
+
+
+def _after_near_bounce(scene: mi.Scene, si: mi.SurfaceInteraction3f, walk: GatherWalk, seen) -> mi.Float:
+    """MIS weight of the emission met at ``si`` by the lanes of ``seen``: against the
+    emitter sample of the near bounce that sampled the ray (``walk.near_pdf`` > 0),
+    else 1."""
+    from mitsuba.ad.integrators.common import mis_weight  # (needs a variant)
+
+    weighted = seen & (walk.near_pdf > 0)
+    ref = dr.zeros(mi.Interaction3f, dr.width(walk.near_pdf))
+    ref.p = walk.near_p
+    ds = mi.DirectionSample3f(scene, si=si, ref=ref)
+    emitter_pdf = scene.pdf_emitter_direction(ref, ds, weighted)
+    return dr.select(weighted, mis_weight(walk.near_pdf, emitter_pdf), 1.0)
 
 
 def _answer_lookups(scene: mi.Scene, source: GatherSource, lookups: "GatherLookup", states: mi.UInt64,

@@ -23,7 +23,6 @@ from .render.caustics import add_deferred_caustics  # noqa: E402
 from .render import config as path_config  # noqa: E402
 from .render.config import PathConfig, PathContext  # noqa: E402
 from .render.path import trace_camera_paths  # noqa: E402
-from .render.reads import survey_first_reads  # noqa: E402
 from .settings import METHODS, Settings  # noqa: E402,F401 (METHODS re-exported)
 
 log = logging.getLogger("pmic")
@@ -315,7 +314,7 @@ class _PMICMethods:
             prepared.key = key
             prepared.stats["cache_loaded_from"] = cache_file
             prepared.stats["time_cache_load"] = time.perf_counter() - t0
-            survey_first_reads(scene, self.settings, prepared)  # (not kept in the file)
+            pipeline.ready_for_first_reads(scene, self.settings, prepared)  # (the survey: not kept in the file)
         else:
             prepared = pipeline.prepare(scene, self.settings, key, pipeline.Progress(self.progress))
             if prepared.index is not None:

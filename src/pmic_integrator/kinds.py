@@ -214,6 +214,30 @@ def lamp_room(size=(48, 32)):
     return scene
 
 
+def panel_in_shade(radiance=20.0, albedo=0.5, size=(32, 32)):
+    """A 2 m cube of two-sided diffuse walls (``albedo``) lit by a 0.2 m square panel
+    facing down, 0.4 m under the ceiling, inside a square shade whose walls start at
+    the panel's edges: the shade's points beside the panel see it from millimetres
+    away (the white room's wall lamps). Its indirect irradiance is at most
+    π · radiance · albedo / (1 - albedo) anywhere."""
+    wall = {"type": "twosided", "bsdf": _diffuse((albedo,) * 3)}
+    scene = {"type": "scene", "sensor": _sensor((0, 0, 2.8), (0, 0, 0), size=size),
+             "panel": {"type": "rectangle", "to_world": T().translate([0, 0.6, 0]).rotate([1, 0, 0], 90).scale(0.1),
+                       "bsdf": _diffuse((0.0, 0.0, 0.0)), "emitter": _area(radiance)}}
+    walls = {"floor": T().translate([0, -1, 0]).rotate([1, 0, 0], -90),
+             "ceiling": T().translate([0, 1, 0]).rotate([1, 0, 0], 90),
+             "back": T().translate([0, 0, -1]),
+             "left": T().translate([-1, 0, 0]).rotate([0, 1, 0], 90),
+             "right": T().translate([1, 0, 0]).rotate([0, 1, 0], -90)}
+    for name, to_world in walls.items():
+        scene[name] = {"type": "rectangle", "to_world": to_world, "bsdf": wall}
+    for i, (angle, offset) in enumerate(((0, (0, 0.5, 0.1)), (0, (0, 0.5, -0.1)),
+                                         (90, (0.1, 0.5, 0)), (90, (-0.1, 0.5, 0)))):
+        scene[f"shade_{i}"] = {"type": "rectangle", "bsdf": wall,
+                               "to_world": T().translate(list(offset)).rotate([0, 1, 0], angle).scale([0.1, 0.1, 1])}
+    return scene
+
+
 def bent_normal_room(tilt=50.0, size=(32, 24)):
     """A closed 2 m room whose floor is a two-triangle mesh with vertex normals leaning
     ``tilt`` degrees towards a strip light low on the left wall: the light crosses the

@@ -59,6 +59,17 @@ FIRST_GATHER_MIN_RAYS = 16
 #: exterior, courtyards; rooms 0.45-0.60). Rooms gather all of their rays at once: the
 #: second round would cost them 0.03 s and its answer is known.
 FIRST_GATHER_MAX_BOUNCED = 0.25
+#: ...and in rooms whose records would gather more than this many rays in all (their
+#: count times ``gather_rays``): there the records that no camera path reads at its
+#: first hit keep their first round, read one traced bounce away, where their noise is
+#: averaged over the bounce's directions; those read at first hits gather the rest
+#: (ready_for_first_reads). Sponza and the white room (~7 000 records, 1.7-1.9M rays:
+#: 6-10 s of the cache stage on two cores) otherwise spent most of a 16-spp render on
+#: the gathers; the rooms under it (the lamp and dining rooms, the glossy Cornell box:
+#: 0.3-0.7M rays, under 3 s) keep every ray, which their denoised images need (the
+#: glossy Cornell box at 64 rays: relMSE after OIDN +47 %). docs/tuning.md, "Gather
+#: rounds", has the measurement.
+GATHER_BUDGET_RAYS = 1 << 20
 #: Precomputed irradiance is estimated from every path but the precomputed ones
 #: (irradiance.precompute_irradiance) in scenes where at least this share of the global
 #: photons' power bounced before landing (rooms: 0.45-0.60), from the odd half only
@@ -624,19 +635,19 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
     if not photons.count:
         prepared.skipped.append("cache: no global photons")
         return None, stats
-    first_rays = max(FIRST_GATHER_MIN_RAYS, int(FIRST_GATHER_SHARE * settings.gather_rays))
-    two_rounds = settings.final_gather_camera and first_rays < settings.gather_rays and \
-        photons.bounced_share() < FIRST_GATHER_MAX_BOUNCED
-    builder = CacheBuilder(scene, settings, prepared,
-                           strata=rays_strata(first_rays) if two_rounds else None)
+    builder = CacheBuilder(scene, settings, prepared)
     progress.update("cache", 0.05, "placing records at the photons")
     position, normal = builder.placement_photons()
     probes = not settings.final_gather_camera
-    # With probes to come, the records are placed only: they are gathered, and their
-    # visibility settled, once, after the probes (complete_with_probes).
-    index, rounds = builder.build_records(position, normal, None, settle=not probes,
-                                          gather=not probes)
+    # The records are placed first, then gathered (with probes to come, after the
+    # probes: complete_with_probes), and their visibility settled.
+    index, rounds = builder.build_records(position, normal, None, settle=False, gather=False)
     stats["placement_rounds"] = rounds
+    if not probes:
+        rounds_of_rays = builder.choose_gather_rounds(index.records.count)
+        progress.update("cache", 0.3, f"{index.records.count} records: gathering")
+        index, more = builder.settle(builder.gather_placed(index), position, normal)
+        stats["placement_rounds"] += more
     if probes:
         progress.update("cache", 0.5, f"{index.records.count} records: surface probes")
         before = index.records.count
@@ -676,26 +687,51 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
                 index.records.normal, prepared.caustic_radius, delta_scale=prepared.caustic_delta_scale)
             index.holds_caustics = True
         dr.eval(index.direct, index.direct_rotation)
-        if two_rounds and index.guiding_pays():
+        if rounds_of_rays == "open" and index.guiding_pays():
             progress.update("cache", 0.8, f"{index.records.count} records: the rest of their gathers")
             index = builder.complete_gathers(index)
+    stats["records"] = index.records.count
+    built = replace(prepared, index=index)
+    # The render's per-cache decisions (guiding pays, a sky is seen, first reads may
+    # pay: reads back from the device) made here, once: renders then start without
+    # a host read (RecordIndex.remembered; benchmarks/kernel_report.py).
+    from .render.config import PathConfig
+
+    ready_for_first_reads(scene, settings, built, progress)
+    if settings.final_gather_camera:
         # Records far brighter than the rest (a lamp's shade lit from inside) become
         # spherical lights that continuation rays are drawn towards.
         index.lights = RecordLights.select(index.records.position,
                                            index.records.radius * index.max_error,
                                            index.records.irradiance + index.light_direct)
-    stats["records"] = index.records.count
-    # The render's per-cache decisions (guiding pays, a sky is seen, first reads may
-    # pay: reads back from the device) made here, once: renders then start without
-    # a host read (RecordIndex.remembered; benchmarks/kernel_report.py).
-    from .render.config import PathConfig
-    from .render.reads import survey_first_reads
-
-    built = replace(prepared, index=index)
-    survey_first_reads(scene, settings, built)
+    stats["records_partial"] = 0 if index.records.partial is None else \
+        int(dr.count(index.records.partial)[0])
     PathConfig.of(settings, built, own_render=True)
     progress.done("cache", f"{index.records.count} records")
     return index, stats
+
+
+def ready_for_first_reads(scene, settings: Settings, prepared: PreparedScene, progress=None) -> None:
+    """Survey which records the adaptive estimator may read at first vertices
+    (:func:`~pmic_integrator.render.reads.survey_first_reads`); where it may read
+    some, records that gathered only their first round (:data:`GATHER_BUDGET_RAYS`)
+    gather the rest: read at the first hit, a record's own noise is seen. Every such
+    record, not only those the survey passed: a first read interpolates all the
+    records that reach it (completing only those, Sponza's relMSE rose 1.1e-2 ->
+    1.4e-2). After a cache is built or read from a file."""
+    from .render.reads import any_first_reads, survey_first_reads
+
+    index = prepared.index
+    survey_first_reads(scene, settings, prepared)
+    if index is None or index.records.partial is None or not any_first_reads(index):
+        return
+    owed = index.records.partial
+    if not dr.any(owed)[0]:
+        return
+    if progress is not None:
+        progress.update("cache", 0.9, f"{index.records.count} records read at first hits: "
+                        "the rest of their gathers")
+    CacheBuilder(scene, settings, prepared).complete_gathers(index, owed)
 
 
 class CacheBuilder:
@@ -710,6 +746,9 @@ class CacheBuilder:
         self.offset = prepared.ray_offset
         #: M×N strata of the records' gathers (default: the settings' gather_rays).
         self.strata = strata or settings.gather_strata
+        #: The records gathered are marked as owing the rest of their rays
+        #: (CacheRecords.partial; :meth:`choose_gather_rounds`).
+        self.partial = False
 
     def index(self, records: CacheRecords) -> RecordIndex:
         """The coverage index of ``records`` used while building (its
@@ -808,9 +847,12 @@ class CacheBuilder:
     def _gather(self, p, n, r, first: int) -> CacheRecords:
         """The records at (p, n) of radius r, gathered; ``first``: the index of the
         first of them in the cache (their random streams follow it)."""
-        return cache_mod.compute_records(self.scene, self.prepared.gather_source, p, n, r,
-                                         self.strata, self.settings.seed + streams.RECORDS + first,
-                                         self.offset, self.sky_openness)
+        records = cache_mod.compute_records(self.scene, self.prepared.gather_source, p, n, r,
+                                            self.strata, self.settings.seed + streams.RECORDS + first,
+                                            self.offset, self.sky_openness)
+        if self.partial:
+            records.partial = dr.full(mi.Bool, True, records.count)
+        return records
 
     def gather_placed(self, index: RecordIndex) -> RecordIndex:
         """``index`` with every record gathered (placed with ``gather=False``): one
@@ -825,18 +867,50 @@ class CacheBuilder:
         return cache_mod.EVEN_SKY_OPENNESS if sky is not None and sky.even \
             else cache_mod.SKY_GUIDE_OPENNESS
 
-    def complete_gathers(self, index: RecordIndex) -> RecordIndex:
+    def choose_gather_rounds(self, records: int) -> str:
+        """Whether ``records`` records gather all of their rays at once (``"one"``), or
+        a first round (:data:`FIRST_GATHER_SHARE`) and the rest where it is needed:
+        all of them where bounced light matters (``"open"``:
+        :data:`FIRST_GATHER_MAX_BOUNCED`), none in a large room that no render of these
+        settings reads at first hits (``"budget"``: :data:`GATHER_BUDGET_RAYS`; a file
+        of such a cache read by one that does: :func:`ready_for_first_reads`). Sets
+        the builder's strata."""
+        from .render.config import may_read_first_hits  # (the render builds on this module)
+
+        rays = self.settings.gather_rays
+        first_rays = max(FIRST_GATHER_MIN_RAYS, int(FIRST_GATHER_SHARE * rays))
+        rounds = "one"
+        if first_rays < rays:
+            if self.prepared.global_map.bounced_share() < FIRST_GATHER_MAX_BOUNCED:
+                rounds = "open"
+            elif records * rays > GATHER_BUDGET_RAYS and \
+                    not may_read_first_hits(self.settings, self.prepared.info):
+                rounds = "budget"
+        if rounds != "one":
+            self.strata = rays_strata(first_rays)
+            self.partial = rounds == "budget"
+        return rounds
+
+    def complete_gathers(self, index: RecordIndex, which: mi.Bool = None) -> RecordIndex:
         """Gather the rest of the settings' ``gather_rays`` at every record of
-        ``index`` (built with fewer: ``strata``) and blend them in
-        (:meth:`CacheRecords.blend`). The same records; returns ``index``."""
+        ``index`` (built with fewer: the first round's, :meth:`choose_gather_rounds`),
+        or at those of ``which``, and blend them in (:meth:`CacheRecords.blend`).
+        The same records; returns ``index``."""
         records = index.records
-        first = self.strata[0] * self.strata[1]
+        first = rays_strata(max(FIRST_GATHER_MIN_RAYS, int(FIRST_GATHER_SHARE * self.settings.gather_rays)))
+        first = first[0] * first[1]
         rest = rays_strata(self.settings.gather_rays - first)
-        more = cache_mod.compute_records(self.scene, self.prepared.gather_source, records.position,
-                                         records.normal, records.radius, rest,
+        lanes = None if which is None else dr.compress(which)
+        some = records if lanes is None else records.take(lanes)
+        more = cache_mod.compute_records(self.scene, self.prepared.gather_source, some.position,
+                                         some.normal, some.radius, rest,
                                          self.settings.seed + streams.RECORDS, self.offset,
                                          self.sky_openness, stream=streams.RECORD_GATHER_REST)
-        index.records = records.blend(more, rest[0] * rest[1] / (first + rest[0] * rest[1]))
+        some = some.blend(more, rest[0] * rest[1] / (first + rest[0] * rest[1]))
+        if some.partial is not None:
+            some.partial = dr.zeros(mi.Bool, some.count)
+        index.records = some if lanes is None else records.put(lanes, some)
+        dr.eval(index.records)
         return index
 
     def settle(self, index: RecordIndex, cand_p, cand_n):

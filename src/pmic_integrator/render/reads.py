@@ -106,7 +106,7 @@ def survey_first_reads(scene, settings, prepared) -> None:
 
     index = prepared.index
     if not first_reads_allowed(settings, prepared) or index.first_readable is not None or \
-            prepared.gather_source is None or prepared.info.has_delta_emitter:
+            prepared.gather_source is None:
         return
     glossy, support, glossy_light = record_surroundings(scene, prepared.gather_source, index.records,
                                                         settings.seed, prepared.ray_offset)
