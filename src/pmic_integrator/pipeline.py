@@ -60,15 +60,16 @@ FIRST_GATHER_MIN_RAYS = 16
 #: second round would cost them 0.03 s and its answer is known.
 FIRST_GATHER_MAX_BOUNCED = 0.25
 #: ...and in rooms whose records would gather more than this many rays in all (their
-#: count times ``gather_rays``): there the records that no camera path reads at its
-#: first hit keep their first round, read one traced bounce away, where their noise is
-#: averaged over the bounce's directions; those read at first hits gather the rest
-#: (ready_for_first_reads). Sponza and the white room (~7 000 records, 1.7-1.9M rays:
-#: 6-10 s of the cache stage on two cores) otherwise spent most of a 16-spp render on
-#: the gathers; the rooms under it (the lamp and dining rooms, the glossy Cornell box:
-#: 0.3-0.7M rays, under 3 s) keep every ray, which their denoised images need (the
-#: glossy Cornell box at 64 rays: relMSE after OIDN +47 %). docs/tuning.md, "Gather
-#: rounds", has the measurement.
+#: count times ``gather_rays``) where no render of the settings reads a record at a
+#: camera path's first hit (render.config.may_read_first_hits): there records keep
+#: their first round, read one traced bounce away, where their noise is averaged over
+#: the bounce's directions (a cache file of them read by a render that makes first
+#: reads gathers the rest: ready_for_first_reads). Sponza and the white room (~7 000
+#: records, 1.7-1.9M rays: 6-10 s of the cache stage on two cores) spent most of a
+#: 16-spp render for a denoiser on the gathers; the rooms under it (the lamp and dining
+#: rooms, the glossy Cornell box: 0.3-0.7M rays, under 3 s) keep every ray, which their
+#: denoised images need (the glossy Cornell box at 64 rays: relMSE after OIDN +47 %).
+#: docs/tuning.md, "Gather rounds", has the measurement.
 GATHER_BUDGET_RAYS = 1 << 20
 #: Precomputed irradiance is estimated from every path but the precomputed ones
 #: (irradiance.precompute_irradiance) in scenes where at least this share of the global
@@ -643,6 +644,7 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
     # probes: complete_with_probes), and their visibility settled.
     index, rounds = builder.build_records(position, normal, None, settle=False, gather=False)
     stats["placement_rounds"] = rounds
+    rounds_of_rays = "one"
     if not probes:
         rounds_of_rays = builder.choose_gather_rounds(index.records.count)
         progress.update("cache", 0.3, f"{index.records.count} records: gathering")
@@ -709,6 +711,11 @@ def build_cache(scene, settings: Settings, prepared: PreparedScene, progress: Pr
     PathConfig.of(settings, built, own_render=True)
     progress.done("cache", f"{index.records.count} records")
     return index, stats
+
+
+def first_round_rays(gather_rays: int) -> int:
+    """The rays of a record's first gather round (:data:`FIRST_GATHER_SHARE`)."""
+    return max(FIRST_GATHER_MIN_RAYS, int(FIRST_GATHER_SHARE * gather_rays))
 
 
 def ready_for_first_reads(scene, settings: Settings, prepared: PreparedScene, progress=None) -> None:
@@ -878,7 +885,7 @@ class CacheBuilder:
         from .render.config import may_read_first_hits  # (the render builds on this module)
 
         rays = self.settings.gather_rays
-        first_rays = max(FIRST_GATHER_MIN_RAYS, int(FIRST_GATHER_SHARE * rays))
+        first_rays = first_round_rays(rays)
         rounds = "one"
         if first_rays < rays:
             if self.prepared.global_map.bounced_share() < FIRST_GATHER_MAX_BOUNCED:
@@ -897,8 +904,7 @@ class CacheBuilder:
         or at those of ``which``, and blend them in (:meth:`CacheRecords.blend`).
         The same records; returns ``index``."""
         records = index.records
-        first = rays_strata(max(FIRST_GATHER_MIN_RAYS, int(FIRST_GATHER_SHARE * self.settings.gather_rays)))
-        first = first[0] * first[1]
+        first = math.prod(rays_strata(first_round_rays(self.settings.gather_rays)))
         rest = rays_strata(self.settings.gather_rays - first)
         lanes = None if which is None else dr.compress(which)
         some = records if lanes is None else records.take(lanes)
