@@ -598,3 +598,25 @@ def test_gathers_beside_an_emitter_bring_no_firefly_into_a_record(seed):
     irradiance = np.array(mi.luminance(integrator.prepared.index.records.irradiance))
     assert np.all(np.isfinite(irradiance))
     assert irradiance.max() <= np.pi * radiance * albedo / (1 - albedo)
+
+
+def test_records_taken_and_put_back_keep_every_field_in_place():
+    """CacheRecords.take / put (a subset completing its gathers): fields of one entry
+    per record and of several (a guide's bins, obstacle sectors) move together."""
+    count, bins = 4, cache.GUIDE_BINS
+    z = dr.zeros(mi.Vector3f, count)
+    records = CacheRecords(
+        mi.Point3f(*[np.arange(count, dtype=np.float32) + k for k in range(3)]), z, mi.Float(np.arange(count)),
+        mi.Color3f(np.arange(count), 0, 0), (z, z, z), (z, z, z),
+        guide=mi.Float(np.arange(count * bins, dtype=np.float32)), partial=mi.Bool([True, False, True, False]))
+    part = records.take(mi.UInt32([2, 0]))
+    assert np.array(part.radius).tolist() == [2, 0]
+    assert np.array(part.guide).tolist() == list(range(2 * bins, 3 * bins)) + list(range(bins))
+    part.radius = part.radius + 10
+    part.guide = part.guide * 0 - 1
+    back = records.put(mi.UInt32([2, 0]), part)
+    assert np.array(back.radius).tolist() == [10, 1, 12, 3]
+    guide = np.array(back.guide).reshape(count, bins)
+    assert (guide[[0, 2]] == -1).all() and (guide[[1, 3]] == np.array(records.guide).reshape(count, bins)[[1, 3]]).all()
+    assert np.array(back.partial).tolist() == [True, False, True, False]
+    assert back.obstacle is None

@@ -234,21 +234,22 @@ class CacheRecords:
         """How many entries per record a field's ``value`` holds (a guide: GUIDE_BINS)."""
         return dr.width(value) // max(self.count, 1)
 
+    def _entries(self, value, lanes: mi.UInt32) -> mi.UInt32:
+        """The entries of a field's ``value`` that the records at ``lanes`` hold."""
+        k = self._per_record(value)
+        if k == 1:
+            return lanes
+        return dr.repeat(lanes * k, k) + dr.tile(dr.arange(mi.UInt32, k), dr.width(lanes))
+
     def take(self, lanes: mi.UInt32) -> "CacheRecords":
         """The records at ``lanes``, every field."""
-        def one(value):
-            k = self._per_record(value)
-            entries = lanes if k == 1 else dr.repeat(lanes * k, k) + dr.tile(dr.arange(mi.UInt32, k), dr.width(lanes))
-            return dr.gather(type(value), value, entries)
-        return self._mapped(one)
+        return self._mapped(lambda value: dr.gather(type(value), value, self._entries(value, lanes)))
 
     def put(self, lanes: mi.UInt32, part: "CacheRecords") -> "CacheRecords":
         """These records with those at ``lanes`` replaced by ``part``'s (same fields)."""
         def one(value, new):
-            k = self._per_record(value)
-            entries = lanes if k == 1 else dr.repeat(lanes * k, k) + dr.tile(dr.arange(mi.UInt32, k), dr.width(lanes))
             out = type(value)(value)
-            dr.scatter(out, new, entries)
+            dr.scatter(out, new, self._entries(value, lanes))
             return out
         return self._mapped(one, part)
 

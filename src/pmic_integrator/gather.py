@@ -389,7 +389,7 @@ class GatherWalk:
     bounce: mi.UInt32
     near_bounces: mi.UInt32
     #: Emission met next is counted: after a delta/glossy bounce without a caustic map,
-    #: and right after a near bounce's delta sample (its emitter sample holds the rest).
+    #: and right after a near bounce (weighted against its emitter sample: ``near_pdf``).
     count_emission: mi.Bool
     crossed: mi.Bool  #: went through an inseparable BSDF
     #: Where a near bounce sampled a non-delta lobe: the emission met next is weighted
@@ -526,7 +526,8 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
         ds_near, em_near = sample_emitter_direction(scene, si, u_em, True, near)
         f_near, pdf_near = bsdf.eval_pdf(ctx_all, si, si.to_local(ds_near.d), near & (ds_near.pdf > 0))
         # Weighted against the continuation's BSDF sample, which counts the emission it
-        # meets (NEAR_HIT_MIS).
+        # meets (_after_near_bounce): alone, a sample from a hit millimetres from a lamp
+        # is unbounded (docs/tuning.md, "near bounces' MIS").
         mis = dr.select(ds_near.delta, 1.0, mis_weight(ds_near.pdf, pdf_near))
         lit_near = throughput * f_near * em_near * mis
         radiance += finite(lit_near, near & (ds_near.pdf > 0))
@@ -677,8 +678,8 @@ def trace_gather_rays(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f,
     (a corner, a contact, a narrow gap: :data:`NEAR_HIT_LOOKUPS`) reads no photon: its
     light is one emitter sample (all emitters, all lobes, a shadow ray) and the
     continuation samples its whole BSDF, up to :data:`NEAR_HIT_BOUNCES` times. Emission
-    the continuation meets is then counted unless the bounce sampled a non-delta lobe
-    (the emitter sample holds that light); light reaching the bounced point through
+    the continuation meets is then counted, weighted against the emitter sample by MIS
+    where the bounce sampled a non-delta lobe; light reaching the bounced point through
     delta/glossy bounces is counted as at the record: by gathering where there is no
     caustic map, else from the caustic map's irradiance precomputed at the nearest
     photon (``irradiance_caustic``). (Found by the continuation instead, a caustic
