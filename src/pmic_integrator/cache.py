@@ -1028,30 +1028,68 @@ def _direct_irradiance_of(scene, position, normal, samples: int, seed: int, offs
     u = mi.Point2f(rng.next_float32(), rng.next_float32())
     if mi.is_spectral:  # each sample its own wavelengths; the records hold linear sRGB
         ref.wavelengths, wavelength_weight = spectra.sample_wavelengths(rng.next_float32())
+    guide = None
     if delta:  # strata of the choice of light: with even weights, each light once
         u.x = dr.minimum((mi.Float(within) + u.x) / samples, ONE_MINUS_EPSILON)
         ds, weight = emission.sample_emitter_direction(scene, ref, u, True, delta=True)
     else:
         u = jittered(u, within, samples)
-        guide = None
         if guides is not None and sky is not None and guides.records.sky_guide is not None:
             fraction = dr.select(guides.sees_sky(owner), RECORD_SKY_GUIDE_FRACTION, 0.0)
             guide = skylight.SkyGuide(guides, owner, fraction)
         ds, weight = skylight.sample_emitter_direction(scene, sky, ref, cos_n, u, guide=guide,
                                                        delta=False)
+    if not delta:
+        from mitsuba.ad.integrators.common import mis_weight  # (needs a variant)
+
+        # Weighted against a cosine sample that counts the emission it meets: alone, an
+        # emitter sample beside a lamp is unbounded (1/d²; a white-room record beside
+        # its wall lamp held 4 105 where π L is 56), as the gathers' near bounces were.
+        weight = weight * dr.select(ds.delta, 1.0, mis_weight(ds.pdf, dr.maximum(dr.dot(ds.d, cos_n), 0.0) / math.pi))
     if mi.is_spectral:
         weight = spectra.to_rgb(weight * wavelength_weight, ref.wavelengths)
-    cosine = dr.dot(ds.d, cos_n)
-    e = weight * dr.maximum(cosine, 0.0)
-    counted = (ds.pdf > 0) & dr.all(dr.isfinite(e))
-    e = dr.select(counted, e, 0.0)
-    # The rotational gradient's sample: L/pdf (n × ω), of the channels' mean, where
-    # the light is above the surface (as the cosine above).
-    mean_weight = (weight.x + weight.y + weight.z) * (1.0 / 3.0)
-    g = dr.select(counted & (cosine > 0) & dr.isfinite(mean_weight),
-                  mean_weight * dr.cross(cos_n, ds.d), 0.0)
+    e, g = _irradiance_sample(weight, ds.d, ds.pdf > 0, cos_n)
+    if not delta:
+        met, d = _emission_by_cosine(scene, sky, ref, cos_n, rng, guide)
+        if mi.is_spectral:
+            met = spectra.to_rgb(met * wavelength_weight, ref.wavelengths)
+        e2, g2 = _irradiance_sample(met, d, dr.max(met) > 0, cos_n)
+        e, g = e + e2, g + g2
     return (mi.Color3f(block_sum(mi.Color3f(e), samples)) / samples,
             mi.Vector3f(block_sum(mi.Vector3f(g), samples)) / samples)
+
+
+def _irradiance_sample(weight, d, valid, cos_n):
+    """One sample's irradiance (``weight`` = L/pdf, times the cosine) and rotational
+    gradient (L/pdf (n × ω), of the channels' mean, where the light is above the
+    surface); 0 where not ``valid`` or not finite."""
+    cosine = dr.dot(d, cos_n)
+    e = weight * dr.maximum(cosine, 0.0)
+    counted = valid & dr.all(dr.isfinite(e))
+    e = dr.select(counted, e, 0.0)
+    mean_weight = (weight.x + weight.y + weight.z) * (1.0 / 3.0)
+    g = dr.select(counted & (cosine > 0) & dr.isfinite(mean_weight),
+                  mean_weight * dr.cross(cos_n, d), 0.0)
+    return e, g
+
+
+def _emission_by_cosine(scene, sky, ref, cos_n, rng, guide):
+    """A cosine-weighted direction about ``cos_n`` from ``ref`` and the emission it
+    meets first (of lights that are not delta), as L/pdf weighted by MIS against the
+    emitter samples of :func:`_direct_irradiance_of`: ``(L/pdf · w, direction)``."""
+    from mitsuba.ad.integrators.common import mis_weight  # (needs a variant)
+
+    local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(rng.next_float32(), rng.next_float32()))
+    d = mi.Frame3f(cos_n).to_world(local)
+    active = dr.dot(d, ref.n) > 0
+    si = scene.ray_intersect(ref.spawn_ray(d), active)
+    emitter = si.emitter(scene, active)
+    active &= emitter != None  # noqa: E711
+    ds = mi.DirectionSample3f(scene, si=si, ref=ref)
+    em_pdf = skylight.pdf_emitter_direction(scene, sky, ref, ds, cos_n, active, guide, delta=False)
+    cos_pdf = dr.maximum(local.z, 1e-12) / math.pi
+    radiance = emitter.eval(si, active)
+    return dr.select(active, radiance * mis_weight(cos_pdf, em_pdf) / cos_pdf, 0.0), d
 
 
 def _relative_rotation(direct: mi.Color3f, gradient: mi.Vector3f) -> mi.Vector3f:
