@@ -55,7 +55,12 @@ RECTANGLE_MARGIN = 1e-4
 FOCUS_MAX_RATIO = 0.1
 #: ...this share of those rays: the rest still cross the whole box, so every ray that
 #: can reach the geometry keeps a density of at least (1 - FOCUS_SHARE) of the uniform
-#: one (photons outside the focus carry at most 1 / (1 - FOCUS_SHARE) = 4x the power).
+#: one (photons outside the focus carry at most 1 / (1 - FOCUS_SHARE) = 4x the power
+#: of a uniform one; against a focused one, 3x the ratio of the two rectangles' areas:
+#: the classroom kind's ground photons that bounce in through its windows carry up to
+#: ~700x the median power of the room's photons, the main source of its images'
+#: spread from one photon seed to the next: docs/limits.md, "A room on a large lit
+#: ground").
 #: Three quarters, so that the focus's photons set the lookup radius (the sparsest 30 %
 #: of the photons do: irradiance.DENSITY_QUANTILE): at one half the far ground's photons
 #: still set it (2.2 m), and the records, at least two radii, were as wide as the room
