@@ -57,10 +57,14 @@ def measure(name: str, spp: int, renders: int) -> dict:
             image, seconds = timed_render(scene, integrator, spp, seed=seed)
             runs.append({"seconds": seconds, "rel_mse": rel_mse(image, ref) - noise})
         row[label] = runs
-    cost = {m: np.mean([r["seconds"] for r in row[m]]) * np.mean([r["rel_mse"] for r in row[m]])
-            for m in ("path", "pmic")}
+    cost = {m: _mean(row[m], "seconds") * _mean(row[m], "rel_mse") for m in ("path", "pmic")}
     row["efficiency"] = float(cost["path"] / cost["pmic"])
     return row
+
+
+def _mean(runs, key: str) -> float:
+    """The mean of ``key`` (seconds, rel_mse) over a method's renders."""
+    return float(np.mean([r[key] for r in runs]))
 
 
 def markdown(rows, command: str) -> list[str]:
@@ -71,11 +75,10 @@ def markdown(rows, command: str) -> list[str]:
              "pmic fixed stages s, compiling (photons / irradiance / cache) |",
              "|---|---|---|---|---|---|---|---|"]
     for row in rows:
-        mean = {m: (np.mean([r["seconds"] for r in row[m]]), np.mean([r["rel_mse"] for r in row[m]]))
-                for m in ("path", "pmic")}
+        path, pmic = row["path"], row["pmic"]
         fixed = " / ".join(f"{row['fixed_seconds'][k]:.2f}" for k in STAGES)
-        lines.append(f"| {row['scene']} | {row['spp']} | {mean['path'][0]:.2f} | {mean['path'][1]:.2e} | "
-                     f"{mean['pmic'][0]:.2f} | {mean['pmic'][1]:.2e} | {row['efficiency']:.2f}× | {fixed} |")
+        lines.append(f"| {row['scene']} | {row['spp']} | {_mean(path, 'seconds'):.2f} | {_mean(path, 'rel_mse'):.2e} | "
+                     f"{_mean(pmic, 'seconds'):.2f} | {_mean(pmic, 'rel_mse'):.2e} | {row['efficiency']:.2f}× | {fixed} |")
     return lines
 
 

@@ -17,6 +17,16 @@ _GOLDEN = 0x9E3779B97F4A7C15
 ONE_MINUS_EPSILON = 0.99999994
 
 
+def mis_weight(pdf_a, pdf_b):
+    """The power heuristic's weight of a sample drawn with density ``pdf_a`` against
+    one of density ``pdf_b``: Mitsuba's own (``mitsuba.ad.integrators.common``),
+    imported on first use, since that module needs a variant set and this one is
+    imported before."""
+    from mitsuba.ad.integrators.common import mis_weight as power_heuristic
+
+    return power_heuristic(pdf_a, pdf_b)
+
+
 def opaque_float(value: float) -> mi.Float:
     return dr.opaque(mi.Float, float(value))
 

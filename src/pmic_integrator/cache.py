@@ -28,8 +28,8 @@ from . import skylight
 from .gather import PAST_TARGET_LIFTS, GatherSource, gather_radiance, stratified_directions
 from . import emission
 from . import spectra
-from ._jit import (ONE_MINUS_EPSILON, concat, finite, interleave, jittered, mean_value, opaque_float, opaque_u32,
-                   rng as make_rng, scatter_min,
+from ._jit import (ONE_MINUS_EPSILON, concat, finite, interleave, jittered, mean_value, mis_weight,
+                   opaque_float, opaque_u32, rng as make_rng, scatter_min,
                    segment_blocked, shading_normal_on_side, surface_offset)
 from .hashgrid import BallGrid, PointGrid
 from .lights import RecordLights
@@ -1039,9 +1039,6 @@ def _direct_irradiance_of(scene, position, normal, samples: int, seed: int, offs
             guide = skylight.SkyGuide(guides, owner, fraction)
         ds, weight = skylight.sample_emitter_direction(scene, sky, ref, cos_n, u, guide=guide,
                                                        delta=False)
-    if not delta:
-        from mitsuba.ad.integrators.common import mis_weight  # (needs a variant)
-
         # Weighted against a cosine sample that counts the emission it meets: alone, an
         # emitter sample beside a lamp is unbounded (1/d²; a white-room record beside
         # its wall lamp held 4 105 where π L is 56), as the gathers' near bounces were.
@@ -1077,8 +1074,6 @@ def _emission_by_cosine(scene, sky, ref, cos_n, rng, guide):
     """A cosine-weighted direction about ``cos_n`` from ``ref`` and the emission it
     meets first (of lights that are not delta), as L/pdf weighted by MIS against the
     emitter samples of :func:`_direct_irradiance_of`: ``(L/pdf · w, direction)``."""
-    from mitsuba.ad.integrators.common import mis_weight  # (needs a variant)
-
     local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(rng.next_float32(), rng.next_float32()))
     d = mi.Frame3f(cos_n).to_world(local)
     active = dr.dot(d, ref.n) > 0

@@ -18,7 +18,7 @@ import mitsuba as mi
 from .cases import GATHER_PEAK_RATIO, GATHER_ROULETTE_BELOW, lobes_of
 from .bsdfs import (diffuse_response, lobes_separable,  # noqa: F401
                     near_diffuse, non_diffuse_context, response_azimuths)
-from ._jit import concat, finite, opaque_float, opaque_u32, segment_blocked, shading_normal_on_side
+from ._jit import concat, finite, mis_weight, opaque_float, opaque_u32, segment_blocked, shading_normal_on_side
 from .emission import sample_emitter_direction
 from .hashgrid import PointGrid
 from .irradiance import nearest_photon
@@ -521,8 +521,6 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
         near = lit & (si.t < near_distance) & (near_bounces < NEAR_HIT_BOUNCES)
         lit &= ~near
         u_em = mi.Point2f(rng.next_float32(), rng.next_float32())
-        from mitsuba.ad.integrators.common import mis_weight  # (needs a variant)
-
         ds_near, em_near = sample_emitter_direction(scene, si, u_em, True, near)
         f_near, pdf_near = bsdf.eval_pdf(ctx_all, si, si.to_local(ds_near.d), near & (ds_near.pdf > 0))
         # Weighted against the continuation's BSDF sample, which counts the emission it
@@ -602,8 +600,6 @@ def _after_near_bounce(scene: mi.Scene, si: mi.SurfaceInteraction3f, walk: Gathe
     """MIS weight of the emission met at ``si`` by the lanes of ``seen``: against the
     emitter sample of the near bounce that sampled the ray (``walk.near_pdf`` > 0),
     else 1."""
-    from mitsuba.ad.integrators.common import mis_weight  # (needs a variant)
-
     weighted = seen & (walk.near_pdf > 0)
     ref = dr.zeros(mi.Interaction3f, dr.width(walk.near_pdf))
     ref.p = walk.near_p

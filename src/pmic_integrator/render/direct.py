@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
-from mitsuba.ad.integrators.common import mis_weight
 
 from .. import emission, skylight
-from .._jit import ONE_MINUS_EPSILON, finite, jittered, only_where
+from .._jit import ONE_MINUS_EPSILON, finite, jittered, mis_weight, only_where
 from ..bsdfs import diffuse_context, non_diffuse_context
 from .config import PathContext
 from .state import PathState
