@@ -764,8 +764,9 @@ def test_a_room_on_a_large_sunlit_ground_receives_photons_through_its_windows():
     windows face a sun and a sky, on a ground square 220 m wide. Its indirect light
     comes from the photons that enter through the windows. Shot across the whole ground,
     5 of the map's 50,000 landed inside (on a 10 m ground 1607 do). The sky and the sun
-    now shoot three quarters of their rays at the building and the ground beside it
-    (emission.focus_box, FOCUS_SHARE): 647."""
+    now shoot half of their rays at the building and the ground beside it
+    (emission.focus_box, FOCUS_SHARE), most of the rest at rings round it
+    (emission.focus_rings): 415 (647 with three quarters at the focus, no rings)."""
     from pmic_integrator import kinds
     scene = mi.load_dict(kinds.sunlit_classroom(size=(16, 9), ground_half=110.0))
     integrator = mi.load_dict({"type": "pmic", "global_photons": 50_000})
@@ -773,7 +774,7 @@ def test_a_room_on_a_large_sunlit_ground_receives_photons_through_its_windows():
     position = np.array(integrator.prepared.global_map.position)
     x, y, z = position if position.shape[0] == 3 else position.T
     inside = (np.abs(x) < 4) & (np.abs(z) < 3) & (y > -0.005) & (y < 3)
-    assert inside.sum() >= 500  # 647
+    assert inside.sum() >= 300  # 415
 
 
 def test_the_renders_cache_decisions_are_made_once_in_the_cache_stage(monkeypatch):

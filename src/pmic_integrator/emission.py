@@ -38,7 +38,7 @@ from ._jit import ONE_MINUS_EPSILON
 
 __all__ = ["sample_emitter_rays", "sample_emitter_direction", "choose_emitter", "emitter_order", "emitter_pmf",
            "emitter_subset", "soft_pdf_scale", "is_delta",
-           "emission_sphere", "emission_bounds", "scene_bbox", "focus_box", "shape_boxes", "EmissionBounds"]
+           "emission_sphere", "emission_bounds", "scene_bbox", "focus_box", "focus_rings", "shape_boxes", "EmissionBounds"]
 
 #: The rectangle that infinite emitters shoot from is widened by this fraction of the
 #: bounding sphere's radius on each side: rounding must not cut off a ray that would
@@ -53,24 +53,35 @@ RECTANGLE_MARGIN = 1e-4
 #: preview's and the torus's floors, the bundled exterior) are left as they were.
 #: docs/tuning.md ("Photons and emission") has the measurement.
 FOCUS_MAX_RATIO = 0.1
-#: ...this share of those rays: the rest still cross the whole box, so every ray that
-#: can reach the geometry keeps a density of at least (1 - FOCUS_SHARE) of the uniform
-#: one (photons outside the focus carry at most 1 / (1 - FOCUS_SHARE) = 4x the power
-#: of a uniform one; against a focused one, 3x the ratio of the two rectangles' areas:
-#: the classroom kind's ground photons that bounce in through its windows carry up to
-#: ~700x the median power of the room's photons, the main source of its images'
-#: spread from one photon seed to the next: docs/limits.md, "A room on a large lit
-#: ground").
-#: Three quarters, so that the focus's photons set the lookup radius (the sparsest 30 %
-#: of the photons do: irradiance.DENSITY_QUANTILE): at one half the far ground's photons
-#: still set it (2.2 m), and the records, at least two radii, were as wide as the room
-#: (27 in it); at three quarters 0.38 m and 98 records. Classroom kind, 16 spp, seeds
-#: 0-1, luminance over its reference: 1.028 without a focus, 1.005 at one half, 1.000
-#: at three quarters.
-FOCUS_SHARE = 0.75
+#: ...this share of those rays; the rest cross rings round the focus and the whole box
+#: (:data:`FOCUS_RING_WIDENING`), so that every ray that can reach the geometry keeps
+#: some density. The lookup radius is set by the focus's photons alone
+#: (pipeline._in_focus), not by the sparser ones outside. One half: over the classroom
+#: kind's photon seeds 0-127 the spread of the photon power landing in its room was
+#: 4.7 % of its mean at 0.5, 4.8 % at 0.45, 9.6 % at 0.55, 34 % at 0.6 (one path from
+#: the far ground) and 17 % at 0.3; its images' (photon seeds 0-15) 1.4 % at 0.5,
+#: 3.0 % at 0.45, 4.4 % at 0.6. docs/tuning.md, "Photons and emission", has the
+#: measurement (``benchmarks/focus_spread.py``).
+FOCUS_SHARE = 0.5
 #: ...and the focus box is the box of the rest of the geometry widened on every side by
 #: this fraction of its diagonal: the ground beside a building is what its windows see.
 FOCUS_MARGIN = 0.25
+#: The rest of the rays cross *rings*: the focus widened FOCUS_RING_WIDENING, its
+#: square, ... times about its centre (within the whole box), while a ring's diagonal
+#: is under FOCUS_RING_MAX_RATIO of the whole's, and the whole box last, each level with
+#: FOCUS_RING_GROWTH times the share of the one before (the classroom kind: one ring,
+#: 55 × 46 m, 0.4 of the rays, the whole 220 m ground 0.1). Why: with the focus alone
+#: (three quarters of the rays, the rest across the whole box) a photon from the ground
+#: beyond the focus that bounced in through a window carried ~700x the median power of
+#: the room's photons, one such photon up to 28 % of the room's photon power, and that
+#: power moved by 13.6 % of its mean from one photon seed to the next (4.7 % with the
+#: rings; the images' 1.8 % → 1.4 %, default photon seed 0.981 → 0.992 of the
+#: reference). Shares growing outwards (√W per level: a model of the sun's light that the
+#: ground sends through the windows puts its variance lowest there) measured no better
+#: (room 5.0 %, images 2.0 %) and placed 40 % more records; docs/tuning.md.
+FOCUS_RING_WIDENING = 4.0
+FOCUS_RING_GROWTH = 0.25
+FOCUS_RING_MAX_RATIO = 0.5
 
 
 def scene_bbox(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
@@ -163,6 +174,7 @@ class EmissionBounds(NamedTuple):
     radius: float
     box: object  #: ``ScalarBoundingBox3f`` whose projection they cross (None: no geometry)
     focus: object = None  #: :func:`focus_box` (None: none)
+    rings: tuple = ()  #: :func:`focus_rings`
 
 
 def emission_bounds(scene: mi.Scene) -> EmissionBounds:
@@ -174,8 +186,26 @@ def emission_bounds(scene: mi.Scene) -> EmissionBounds:
     if not bbox.valid():
         return EmissionBounds(mi.ScalarPoint3f(0.0), eps, None)
     bsphere = bbox.bounding_sphere()
+    focus = focus_box(scene, boxes)
     return EmissionBounds(mi.ScalarPoint3f(bsphere.center), max(eps, float(bsphere.radius) * (1.0 + eps)),
-                          bbox, focus_box(scene, boxes))
+                          bbox, focus, focus_rings(focus, bbox))
+
+
+def focus_rings(focus, whole) -> tuple:
+    """The boxes between ``focus`` and ``whole`` that infinite emitters shoot part of
+    their rays across (:data:`FOCUS_RING_WIDENING`); () without a focus."""
+    if focus is None:
+        return ()
+    center, half = (focus.min + focus.max) * 0.5, (focus.max - focus.min) * 0.5
+    rings = []
+    for level in range(1, 32):  # (a bound: the whole box is reached long before)
+        widening = FOCUS_RING_WIDENING ** level
+        ring = mi.ScalarBoundingBox3f(dr.maximum(center - half * widening, whole.min),
+                                      dr.minimum(center + half * widening, whole.max))
+        if not _diagonal(ring) < FOCUS_RING_MAX_RATIO * _diagonal(whole):
+            break
+        rings.append(ring)
+    return tuple(rings)
 
 
 def _box_rectangle(d: mi.Vector3f, center: mi.Point3f, radius: float, box):
@@ -194,25 +224,48 @@ def _box_rectangle(d: mi.Vector3f, center: mi.Point3f, radius: float, box):
     return frame.s, frame.t, s_lo - margin, s_hi + margin, t_lo - margin, t_hi + margin
 
 
-def _rectangle_origin(d: mi.Vector3f, center: mi.Point3f, radius: float, box, focus, sample: mi.Point2f):
-    """``(origin, 1 / density)`` of an infinite emitter's ray along ``d``: on the
-    rectangle bounding ``box``'s projection, behind the bounding sphere. With a
-    ``focus`` box, :data:`FOCUS_SHARE` of the samples (``sample.x`` below it) land on
-    the rectangle bounding the focus's projection instead, and the density is the
-    mixture's (one sample of it; unbiased: the whole rectangle keeps a share)."""
-    s, t, s_lo, s_hi, t_lo, t_hi = _box_rectangle(d, center, radius, box)
-    area = (s_hi - s_lo) * (t_hi - t_lo)
+def _area(rectangle) -> mi.Float:
+    s_lo, s_hi, t_lo, t_hi = rectangle
+    return (s_hi - s_lo) * (t_hi - t_lo)
+
+
+def _levels(box, focus, rings) -> list:
+    """``(box, share)`` of each rectangle an infinite emitter's rays cross: the focus
+    (:data:`FOCUS_SHARE`), then its rings and the whole box last, each with
+    :data:`FOCUS_RING_GROWTH` times the share of the one before; or the whole box alone."""
     if focus is None:
-        return center + s * dr.lerp(s_lo, s_hi, sample.x) + t * dr.lerp(t_lo, t_hi, sample.y) - d * radius, area
-    _, _, f_s_lo, f_s_hi, f_t_lo, f_t_hi = _box_rectangle(d, center, radius, focus)
-    focused = sample.x < FOCUS_SHARE
-    u = dr.select(focused, sample.x / FOCUS_SHARE, (sample.x - FOCUS_SHARE) / (1.0 - FOCUS_SHARE))
-    u = dr.minimum(u, ONE_MINUS_EPSILON)
-    ps = dr.select(focused, dr.lerp(f_s_lo, f_s_hi, u), dr.lerp(s_lo, s_hi, u))
-    pt = dr.select(focused, dr.lerp(f_t_lo, f_t_hi, sample.y), dr.lerp(t_lo, t_hi, sample.y))
-    focus_area = (f_s_hi - f_s_lo) * (f_t_hi - f_t_lo)
-    in_focus = (ps >= f_s_lo) & (ps <= f_s_hi) & (pt >= f_t_lo) & (pt <= f_t_hi)
-    density = (1.0 - FOCUS_SHARE) / area + dr.select(in_focus, FOCUS_SHARE / focus_area, 0.0)
+        return [(box, 1.0)]
+    parts = [FOCUS_RING_GROWTH ** k for k in range(len(rings) + 1)]
+    rest = [(1.0 - FOCUS_SHARE) * part / sum(parts) for part in parts]
+    return [(focus, FOCUS_SHARE)] + list(zip(list(rings) + [box], rest))
+
+
+def _rectangle_origin(d: mi.Vector3f, center: mi.Point3f, radius: float, levels: list,
+                      sample: mi.Point2f):
+    """``(origin, 1 / density)`` of an infinite emitter's ray along ``d``, behind the
+    bounding sphere, on one of the rectangles bounding the projections of ``levels``'s
+    boxes (:func:`_levels`: the whole box last), chosen by ``sample.x`` with the
+    levels' shares. The density is the mixture's (one sample of it; unbiased: the whole
+    rectangle keeps a share, and every other box lies within it)."""
+    s, t, s_lo, s_hi, t_lo, t_hi = _box_rectangle(d, center, radius, levels[-1][0])
+    if len(levels) == 1:
+        return center + s * dr.lerp(s_lo, s_hi, sample.x) + t * dr.lerp(t_lo, t_hi, sample.y) - d * radius, \
+            _area((s_lo, s_hi, t_lo, t_hi))
+    rectangles = [_box_rectangle(d, center, radius, box)[2:] for box, _ in levels[:-1]] + \
+        [(s_lo, s_hi, t_lo, t_hi)]
+    ps = pt = mi.Float(0.0)
+    start = 0.0
+    for k, ((_, share), (s_lo, s_hi, t_lo, t_hi)) in enumerate(zip(levels, rectangles)):
+        last = k == len(levels) - 1
+        chosen = (sample.x >= start) if last else (sample.x >= start) & (sample.x < start + share)
+        u = dr.minimum((sample.x - start) / share, ONE_MINUS_EPSILON)
+        ps = dr.select(chosen, dr.lerp(s_lo, s_hi, u), ps)
+        pt = dr.select(chosen, dr.lerp(t_lo, t_hi, sample.y), pt)
+        start += share
+    density = levels[-1][1] / _area(rectangles[-1])  # (every origin lies within the whole)
+    for (_, share), (s_lo, s_hi, t_lo, t_hi) in zip(levels[:-1], rectangles):
+        inside = (ps >= s_lo) & (ps <= s_hi) & (pt >= t_lo) & (pt <= t_hi)
+        density += dr.select(inside, share / _area((s_lo, s_hi, t_lo, t_hi)), 0.0)
     return center + s * ps + t * pt - d * radius, dr.rcp(density)
 
 
@@ -498,7 +551,8 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
     # Infinite emitters: direction from sample_direction, origin on the rectangle that
     # bounds the box's projection, perpendicular to the *world-space* direction, placed
     # outside the bounding sphere.
-    center, radius, box, focus = emission_bounds(scene) if bounds is None else bounds
+    center, radius, box, focus, rings = emission_bounds(scene) if bounds is None else bounds
+    levels = _levels(box, focus, rings)
     center_v = mi.Point3f(center)
     it = dr.zeros(mi.Interaction3f, n)
     it.p = center_v
@@ -515,7 +569,7 @@ def sample_emitter_rays(scene: mi.Scene, time, sample1, sample2, sample3, active
         origin = center_v + (perp - d) * radius
         area = mi.Float(dr.pi * radius * radius)
     else:
-        origin, area = _rectangle_origin(d, center_v, radius, box, focus, sample2)
+        origin, area = _rectangle_origin(d, center_v, radius, levels, sample2)
     if spectral:
         si = dr.zeros(mi.SurfaceInteraction3f, n)
         si.p, si.uv, si.time = origin, ds.uv, time

@@ -27,7 +27,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import cache as cache_mod, streams
-from .emission import is_delta, scene_bbox  # noqa: F401  (scene_bbox re-exported)
+from .emission import focus_box, is_delta, scene_bbox  # noqa: F401  (scene_bbox re-exported)
 from .fingerprint import SceneFingerprint, scene_fingerprint  # noqa: F401 (re-exported)
 from ._jit import concat, every_nth, opaque_float, rng as make_rng
 from .bsdfs import glossy_beside_diffuse, ignores_lobe_masks, lobes_lean, non_diffuse_context
@@ -564,13 +564,28 @@ def caustic_lookup_size(lookup_size: int, share: float) -> int:
     return max(1, int(lookup_size * CAUSTIC_LOOKUP_FRACTION * growth))
 
 
+def _in_focus(scene: mi.Scene, info: SceneInfo, positions: mi.Point3f) -> mi.Point3f:
+    """Those of ``positions`` inside the focus of the scene's skies and suns
+    (emission.focus_box), or all of them where there is none (or none inside): the
+    sparser photons of the focus's rings (emission.focus_rings), the sparsest 30 %
+    otherwise, must not set the lookup radius (irradiance.DENSITY_QUANTILE): records are
+    at least a lookup radius wide, and the building's would grow to a room's size."""
+    focus = focus_box(scene) if info.has_infinite_emitter and dr.width(positions.x) else None
+    if focus is None:
+        return positions
+    low, high = focus.min, focus.max
+    inside = dr.compress((positions.x >= low.x) & (positions.x <= high.x) & (positions.y >= low.y) &
+                         (positions.y <= high.y) & (positions.z >= low.z) & (positions.z <= high.z))
+    return dr.gather(mi.Point3f, positions, inside) if dr.width(inside) else positions
+
+
 def precompute(scene: mi.Scene, settings: Settings, info: SceneInfo, global_map: PhotonMap,
                caustic_map: PhotonMap, skipped: list) -> dict:
     """Stage 2: lookup radii, hash grids, and irradiance precomputed at the global
     photons (what gather rays read). Returns the PreparedScene fields it fills."""
     global_radius = settings.lookup_radius or adapted_lookup_radius(
-        global_map.position, lookup_radius(info.surface_area, global_map.count, settings.lookup_size),
-        settings.lookup_size)
+        _in_focus(scene, info, global_map.position),
+        lookup_radius(info.surface_area, global_map.count, settings.lookup_size), settings.lookup_size)
     share = caustic_share(global_map, caustic_map)
     caustic_size = caustic_lookup_size(settings.lookup_size, share)
     # Where caustics light the room (CAUSTIC_ROOM_PYRAMID_LEVELS).
