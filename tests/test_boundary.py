@@ -36,6 +36,42 @@ def test_an_open_plane_and_a_wall_foot_hold_the_whole_kernel_and_a_free_edge_hal
     assert mass[3] == pytest.approx(0.5, abs=0.04)  # at the floor's free edge
 
 
+def test_the_probes_of_another_count_of_points_compile_nothing_anew():
+    """The probes' test for a see-through surface took the mean of a colour with
+    ``dr.mean``, which writes the array's width into the kernel: the probes' 10 000-
+    operation kernel was compiled anew for every count of precomputed photons (a new
+    scene, seed or photon count: 5 s of the white room's 0.5-s precomputation on two
+    cores). Now _jit.channel_mean. (A kernel loaded from Dr.Jit's disk cache counts as
+    new to the process too.)"""
+    import drjit as dr
+
+    # (A floor that a mask makes half see-through: the test's colour then is no constant.)
+    scene = mi.load_dict({"type": "scene", "floor": {"type": "rectangle", "bsdf": {
+        "type": "mask", "opacity": {"type": "checkerboard"}, "bsdf": {"type": "diffuse"}}}})
+
+    def run(count):
+        # (Points computed, not copied from NumPy: a copied array's alignment also
+        # goes into the kernel, and so would a constant 1 / count.)
+        x = dr.fma(mi.Float(dr.arange(mi.UInt32, count)), dr.opaque(mi.Float, 0.9 / count), -0.45)
+        p = mi.Point3f(x, -x, 0.0)
+        dr.eval(p)
+        mass = boundary.surface_mass(scene, p, mi.Vector3f(0, 0, 1), mi.Float(0.1), irradiance.PLANE_TOLERANCE,
+                                     irradiance.NORMAL_COSINE, 0, 1e-5)
+        dr.eval(mass)
+        return np.array(mass)
+
+    assert np.all(np.isfinite(run(5)))
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    try:
+        run(9)
+        compiled = [k for k in dr.kernel_history()
+                    if k["type"] == dr.KernelType.JIT and (not k["cache_hit"] or k["cache_disk"])]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert [(k["size"], k["operation_count"]) for k in compiled] == []
+
+
 @pytest.mark.parametrize("half_width", [0.2, 0.5])
 def test_a_strip_narrower_than_the_disc_holds_the_kernel_over_it(half_width):
     """A beam or a pillar cuts the disc on both sides: the photons' centroid stays put,

@@ -795,3 +795,39 @@ def test_the_renders_cache_decisions_are_made_once_in_the_cache_stage(monkeypatc
 
     monkeypatch.setattr(RecordIndex, "_guiding_pays", recomputed)
     assert np.array_equal(np.array(mi.render(scene, spp=2)), first)
+
+
+def test_the_records_gathers_of_another_count_compile_nothing_anew():
+    """gather_radiance sums each ray's lookups into its radiance. Dr.Jit's default
+    scatter-add on the CPU reduces into a copy per thread and writes the target's size
+    (the rays' count) into the kernel: compiled anew for every count of records, so
+    for every scene, seed and photon count. Now atomic adds, one per ray and sum
+    (_jit.scatter_min has the same story). (A kernel loaded from Dr.Jit's disk cache
+    counts as new to the process too.)"""
+    scene = mi.load_dict(cornell(16, white=_rough_plastic([0.7, 0.7, 0.7])))
+    prepared = pipeline.prepare(scene, settings(estimator="first_hit"))
+    source, records = prepared.gather_source, prepared.index.records
+    assert records.count >= 150
+
+    def run(count):
+        chosen = dr.arange(mi.UInt32, count)
+        ray, *_, rng = cache._stratified_rays(dr.gather(mi.Point3f, records.position, chosen),
+                                              dr.gather(mi.Vector3f, records.normal, chosen), (8, 16), 7,
+                                              streams.RECORD_GATHER, prepared.ray_offset)
+        assert dr.width(ray.o) >= gather.SPLIT_GATHER_MIN_RAYS
+        radiance, _ = gather.gather_radiance(scene, source, ray, rng)
+        dr.eval(radiance)
+        return radiance
+
+    # (Read back outside the history: a colour copied to NumPy writes its width into
+    # a kernel of its own, the test's.)
+    assert np.array(run(130)).sum() > 0
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    try:
+        run(150)
+        compiled = [k for k in dr.kernel_history()
+                    if k["type"] == dr.KernelType.JIT and (not k["cache_hit"] or k["cache_disk"])]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert [(k["size"], k["operation_count"]) for k in compiled] == []

@@ -22,7 +22,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import streams
-from ._jit import opaque_u32, rng as make_rng, surface_offset
+from ._jit import channel_mean, opaque_u32, rng as make_rng, surface_offset
 
 #: Probes per estimate: SURFACE_PROBE_STRATA² stratified over the disc.
 SURFACE_PROBE_STRATA = 8
@@ -104,7 +104,7 @@ def _opaque_hit(scene: mi.Scene, ray: mi.Ray3f, active) -> mi.SurfaceInteraction
     si = scene.ray_intersect(ray, active)
     bsdf = si.bsdf()
     see_through = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
-    see_through &= dr.mean(mi.Spectrum(bsdf.eval_null_transmission(si, see_through))) > 0.5
+    see_through &= channel_mean(mi.Spectrum(bsdf.eval_null_transmission(si, see_through))) > 0.5
     beyond = si.spawn_ray(ray.d)
     beyond.maxt = ray.maxt - si.t
     second = scene.ray_intersect(beyond, see_through & (ray.maxt > si.t))

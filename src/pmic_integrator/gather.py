@@ -783,10 +783,13 @@ def gather_radiance(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f, rng: m
                                 sample_delta)
     dr.eval(reflected)
     # The sums below add each ray's lookups in the order of its vertices, whatever the
-    # order of the threads.
+    # order of the threads. (Atomic adds, each ray's once per sum: Dr.Jit's default on
+    # the CPU reduces into a copy per thread and writes the rays' count into the
+    # kernel, which was compiled anew for every record count: _jit.scatter_min.)
     done = dr.width(first.lanes)
     if done:
-        dr.scatter_add(radiance, dr.gather(mi.Spectrum, reflected, dr.arange(mi.UInt32, done)), first.lanes)
+        dr.scatter_add(radiance, dr.gather(mi.Spectrum, reflected, dr.arange(mi.UInt32, done)), first.lanes,
+                       mode=dr.ReduceMode.Direct)
     if later is not None and dr.width(later.lanes):
         count = dr.width(later.lanes)
         part = dr.gather(mi.Spectrum, reflected, dr.arange(mi.UInt32, count) + opaque_u32(done))
@@ -797,5 +800,5 @@ def gather_radiance(scene: mi.Scene, source: GatherSource, ray: mi.Ray3f, rng: m
         total = dr.zeros(mi.Spectrum, dr.width(going))
         for vertex in range(GATHER_VERTICES):
             total += dr.gather(mi.Spectrum, by_slot, first_slot + vertex)
-        dr.scatter_add(radiance, total, going)
+        dr.scatter_add(radiance, total, going, mode=dr.ReduceMode.Direct)
     return radiance, walk.distance
