@@ -247,25 +247,27 @@ def _rectangle_origin(d: mi.Vector3f, center: mi.Point3f, radius: float, levels:
     boxes (:func:`_levels`: the whole box last), chosen by ``sample.x`` with the
     levels' shares. The density is the mixture's (one sample of it; unbiased: the whole
     rectangle keeps a share, and every other box lies within it)."""
-    s, t, s_lo, s_hi, t_lo, t_hi = _box_rectangle(d, center, radius, levels[-1][0])
+    s, t, *whole = _box_rectangle(d, center, radius, levels[-1][0])
     if len(levels) == 1:
+        s_lo, s_hi, t_lo, t_hi = whole
         return center + s * dr.lerp(s_lo, s_hi, sample.x) + t * dr.lerp(t_lo, t_hi, sample.y) - d * radius, \
-            _area((s_lo, s_hi, t_lo, t_hi))
-    rectangles = [_box_rectangle(d, center, radius, box)[2:] for box, _ in levels[:-1]] + \
-        [(s_lo, s_hi, t_lo, t_hi)]
+            _area(whole)
+    rectangles = [_box_rectangle(d, center, radius, box)[2:] for box, _ in levels[:-1]] + [whole]
     ps = pt = mi.Float(0.0)
     start = 0.0
     for k, ((_, share), (s_lo, s_hi, t_lo, t_hi)) in enumerate(zip(levels, rectangles)):
-        last = k == len(levels) - 1
-        chosen = (sample.x >= start) if last else (sample.x >= start) & (sample.x < start + share)
+        chosen = sample.x >= start
+        if k < len(levels) - 1:
+            chosen &= sample.x < start + share
         u = dr.minimum((sample.x - start) / share, ONE_MINUS_EPSILON)
         ps = dr.select(chosen, dr.lerp(s_lo, s_hi, u), ps)
         pt = dr.select(chosen, dr.lerp(t_lo, t_hi, sample.y), pt)
         start += share
-    density = levels[-1][1] / _area(rectangles[-1])  # (every origin lies within the whole)
-    for (_, share), (s_lo, s_hi, t_lo, t_hi) in zip(levels[:-1], rectangles):
+    density = levels[-1][1] / _area(whole)  # (every origin lies within the whole)
+    for (_, share), rectangle in zip(levels[:-1], rectangles):
+        s_lo, s_hi, t_lo, t_hi = rectangle
         inside = (ps >= s_lo) & (ps <= s_hi) & (pt >= t_lo) & (pt <= t_hi)
-        density += dr.select(inside, share / _area((s_lo, s_hi, t_lo, t_hi)), 0.0)
+        density += dr.select(inside, share / _area(rectangle), 0.0)
     return center + s * ps + t * pt - d * radius, dr.rcp(density)
 
 
