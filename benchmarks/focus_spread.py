@@ -39,11 +39,12 @@ CONFIGS = ["0.75:0", "0.5:4", "0.45:4", "0.55:4", "0.5:3", "0.5:6", "0.6:4", "0.
 
 def _room(photons):
     """Green photon power of the photons inside the room, as a numpy array."""
+    from pmic_integrator import kinds
     p = np.array(photons.position)
     x, y, z = p if p.shape[0] == 3 else p.T
     power = np.array(photons.power)
     green = (power if power.shape[0] == 3 else power.T)[1]
-    return green[(np.abs(x) < 4.01) & (np.abs(z) < 3.01) & (y > -0.01) & (y < 3.01)]
+    return green[kinds.inside_sunlit_classroom(x, y, z)]
 
 
 def _configure(config: str) -> None:

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from pmic_integrator import boundary, irradiance, pipeline
+from jit_history import new_kernels
 
 
 def _kernel_mass_in_strip(half_width: float) -> float:
@@ -61,15 +62,9 @@ def test_the_probes_of_another_count_of_points_compile_nothing_anew():
         return np.array(mass)
 
     assert np.all(np.isfinite(run(5)))
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    dr.kernel_history()
-    try:
+    with new_kernels() as compiled:
         run(9)
-        compiled = [k for k in dr.kernel_history()
-                    if k["type"] == dr.KernelType.JIT and (not k["cache_hit"] or k["cache_disk"])]
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert [(k["size"], k["operation_count"]) for k in compiled] == []
+    assert compiled == []
 
 
 @pytest.mark.parametrize("half_width", [0.2, 0.5])

@@ -8,6 +8,7 @@ from pmic_integrator import cache
 from pmic_integrator.cache import CacheRecords, RecordIndex
 
 from pmic_integrator.kinds import cornell
+from jit_history import new_kernels
 
 
 def _covers_np(x, n, rp, rn, rr, a):
@@ -100,17 +101,11 @@ def test_placement_compiles_no_kernel_per_candidate_count():
 
     run(900, 4)
     run(3, 5)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    dr.kernel_history()
-    try:
+    with new_kernels() as compiled:
         run(1, 6)  # a settled placement's one lost photon
         run(2, 7)
         run(5, 8)
-        compiled = [k for k in dr.kernel_history()
-                    if k["type"] == dr.KernelType.JIT and (not k["cache_hit"] or k["cache_disk"])]
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert [(k["size"], k["operation_count"]) for k in compiled] == []
+    assert compiled == []
 
 
 def test_obstacle_sectors_compile_one_kernel_for_every_record_count():
@@ -128,15 +123,9 @@ def test_obstacle_sectors_compile_one_kernel_for_every_record_count():
         return np.array(out).reshape(count, cache.OBSTACLE_SECTORS)
 
     first = run(5)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    dr.kernel_history()
-    try:
+    with new_kernels() as compiled:
         second = run(9)
-        compiled = [k for k in dr.kernel_history()
-                    if k["type"] == dr.KernelType.JIT and (not k["cache_hit"] or k["cache_disk"])]
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert [(k["size"], k["operation_count"]) for k in compiled] == []
+    assert compiled == []
     assert np.array_equal(first, second[:5])  # the same minima, record by record
 
 

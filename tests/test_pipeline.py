@@ -9,6 +9,7 @@ from pmic_integrator import cache, gather, photons, pipeline, streams
 from pmic_integrator.settings import Settings
 
 from pmic_integrator.kinds import SMALL_PMIC, cornell, courtyard
+from jit_history import new_kernels
 
 
 def settings(**params):
@@ -822,12 +823,6 @@ def test_the_records_gathers_of_another_count_compile_nothing_anew():
     # (Read back outside the history: a colour copied to NumPy writes its width into
     # a kernel of its own, the test's.)
     assert np.array(run(130)).sum() > 0
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    dr.kernel_history()
-    try:
+    with new_kernels() as compiled:
         run(150)
-        compiled = [k for k in dr.kernel_history()
-                    if k["type"] == dr.KernelType.JIT and (not k["cache_hit"] or k["cache_disk"])]
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert [(k["size"], k["operation_count"]) for k in compiled] == []
+    assert compiled == []

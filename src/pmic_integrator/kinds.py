@@ -418,6 +418,12 @@ def sunlit_classroom(size=(48, 27), ground_half=110.0, sun=True):
     return d
 
 
+def inside_sunlit_classroom(x, y, z):
+    """Which of the points (NumPy coordinates) lie inside :func:`sunlit_classroom`'s
+    room, its inner faces included (1 cm of slack)."""
+    return (np.abs(x) < 4.01) & (np.abs(z) < 3.01) & (y > -0.01) & (y < 3.01)
+
+
 def tall_stairwell(size=(24, 40)):
     """A 3 × 8 × 3 m shaft of solid walls lit by one small, bright sphere 7 m up, with a
     flight of steps along one wall and a glass sphere under the light (a chandelier's
