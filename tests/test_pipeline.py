@@ -826,3 +826,93 @@ def test_the_records_gathers_of_another_count_compile_nothing_anew():
     with new_kernels() as compiled:
         run(150)
     assert compiled == []
+
+
+def _layered_photons(layers, spots: int = 3000):
+    """Photons on a 1 m square (z = 0, normals +z) at ``spots`` random spots; at each
+    spot one photon per ``(depth, specular_path, power)`` of ``layers``: every estimate
+    holds the layers in the same proportions as their powers."""
+    xy = np.random.default_rng(1).random((spots, 2))
+    p = np.concatenate([np.column_stack([xy, np.zeros(spots)])] * len(layers))
+    depth = np.concatenate([np.full(spots, d, np.uint32) for d, _, _ in layers])
+    specular = np.concatenate([np.full(spots, s) for _, s, _ in layers])
+    power = np.concatenate([np.full(spots, w, np.float32) for _, _, w in layers])
+    count = spots * len(layers)
+    up = np.tile([0.0, 0.0, 1.0], (count, 1))
+    return photons.PhotonMap(mi.Point3f(p.T), mi.Vector3f(up.T),
+                             mi.Color3f(power, power, power), mi.UInt32(depth), mi.Bool(specular),
+                             dr.arange(mi.UInt32, count), count)
+
+
+@pytest.mark.parametrize("layers, share", [
+    ([(1, True, 1.0), (2, True, 1.0)], 0.5),  # direct and caustic alike
+    ([(1, True, 1.0), (3, True, 2.0), (2, False, 1.0)], 0.5),  # a bounce off a diffuse surface is not caustic
+    ([(1, True, 1.0), (2, True, 3.0)], 0.75),
+    ([(1, True, 1.0), (2, False, 1.0)], 0.0),  # no caustic photon
+])
+def test_caustic_standout_is_the_caustic_share_of_the_estimates_at_caustic_photons(layers, share):
+    from pmic_integrator.irradiance import caustic_standout
+
+    assert caustic_standout(_layered_photons(layers), 0.05, 32) == pytest.approx(share, abs=1e-5)
+
+
+@pytest.mark.parametrize("aovs, caustic_map", [("albedo,normal", False), ("", True),
+                                               ("albedo,normal,direct", False)])
+def test_a_render_for_a_denoiser_traces_caustics_that_neither_stand_out_nor_hide(aovs, caustic_map):
+    """A fifth of a wide ceiling panel behind glass (the white room's kind: caustic
+    standout ~0.2, traced moment ~33): a render that outputs the denoiser's guides
+    skips the caustic pass (pipeline.CAUSTIC_MIN_STANDOUT, CAUSTIC_MAX_TRACED_MOMENT),
+    whose map cost more than it saved after OIDN, and its gathers trace the caustics;
+    a raw render keeps the map, and does not measure."""
+    from pmic_integrator import kinds
+
+    integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC, "aovs": aovs})
+    stats = integrator.build_cache(mi.load_dict(kinds.glass_covered_panel()))
+    prepared = integrator.prepared
+    assert (prepared.caustic_map.count > 0) == caustic_map
+    assert prepared.gather_source.caustics_by_gathering != caustic_map
+    if caustic_map:
+        assert "caustic_standout" not in stats
+    else:
+        assert stats["caustic_standout"] < pipeline.CAUSTIC_MIN_STANDOUT
+        assert 1.0 <= stats["caustic_traced_moment"] <= pipeline.CAUSTIC_MAX_TRACED_MOMENT
+        assert stats["caustics_left_to_denoiser"] is True
+        assert any("for a denoiser" in reason for reason in prepared.skipped)
+
+
+def test_a_render_for_a_denoiser_maps_caustics_that_stand_out_or_that_tracing_hardly_finds():
+    """A glass sphere's caustic spot stands out from the light round it (~0.5); the
+    stairwell kind's glass drop spreads a 4 cm lamp's light down the shaft (standout
+    ~0.08), but a traced ray meets the lamp through the drop about once in 10^5 (its
+    samples' relative moment above CAUSTIC_MAX_TRACED_MOMENT): both keep their maps."""
+    from pmic_integrator import kinds, scenes
+
+    for scene, measured in ((scenes.load_scene("cornell_caustics", resolution=16, spp=1), "standout"),
+                            (mi.load_dict(kinds.tall_stairwell(size=(12, 20))), "moment")):
+        integrator = mi.load_dict({"type": "pmic", **SMALL_PMIC, "aovs": "albedo,normal"})
+        stats = integrator.build_cache(scene)
+        assert integrator.prepared.caustic_map.count > 0
+        assert "caustics_left_to_denoiser" not in stats
+        if measured == "standout":
+            assert stats["caustic_standout"] >= pipeline.CAUSTIC_MIN_STANDOUT
+        else:
+            assert stats["caustic_standout"] < pipeline.CAUSTIC_MIN_STANDOUT
+            assert stats["caustic_traced_moment"] > pipeline.CAUSTIC_MAX_TRACED_MOMENT
+
+
+def test_a_raw_render_of_a_denoisers_cache_file_without_caustics_is_warned(tmp_path, caplog):
+    """Read by a render that is not for a denoiser, a cache file built for one without a
+    caustic map is used (its records gathered the caustics) with a warning."""
+    from pmic_integrator import kinds
+
+    path = str(tmp_path / "for_denoiser.npz")
+    scene = mi.load_dict(kinds.glass_covered_panel())
+    writer = mi.load_dict({"type": "pmic", **SMALL_PMIC, "aovs": "albedo,normal", "cache_file": path})
+    writer.build_cache(scene)
+    for aovs, warned in (("albedo,normal", False), ("", True)):
+        caplog.clear()
+        reader = mi.load_dict({"type": "pmic", **SMALL_PMIC, "aovs": aovs, "cache_file": path})
+        with caplog.at_level("WARNING", logger="pmic"):
+            reader.build_cache(scene)
+        assert reader.prepared.caustic_map.count == 0
+        assert any("built for a denoiser" in r.getMessage() for r in caplog.records) == warned

@@ -110,8 +110,11 @@ class _PMICMethods:
          - 100000
          - Photons stored in the caustic map by its own pass (0-5e7; skipped if the
            scene has no delta or glossy surface; dropped if under a tenth is stored
-           after 20 paths per photon, and records then gather caustic light instead).
-           The global pass's own caustic photons join the map.
+           after 20 paths per photon, and records then gather caustic light instead;
+           skipped in a render for a denoiser, ``aovs`` with albedo and normal, where
+           the caustics stand out little from the light around them and tracing
+           finds them readily: docs/tuning.md, "The caustic map"). The global pass's
+           own caustic photons join the map.
        * - ``lookup_size``
          - integer
          - 64
@@ -314,6 +317,11 @@ class _PMICMethods:
             prepared.key = key
             prepared.stats["cache_loaded_from"] = cache_file
             prepared.stats["time_cache_load"] = time.perf_counter() - t0
+            if prepared.stats.get("caustics_left_to_denoiser") and not self.settings.denoiser_guides:
+                log.warning("pmic: cache_file '%s' was built for a denoiser (aovs with albedo and "
+                            "normal) and has no caustic map: this render traces its caustic light, "
+                            "which may leave bright single pixels. Build the file with a render "
+                            "without those aovs for images that are not denoised.", cache_file)
             pipeline.ready_for_first_reads(scene, self.settings, prepared)  # (the survey: not kept in the file)
         else:
             prepared = pipeline.prepare(scene, self.settings, key, pipeline.Progress(self.progress))

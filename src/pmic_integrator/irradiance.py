@@ -414,6 +414,49 @@ def nearest_photon(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
     return best, dr.isfinite(best_d2)
 
 
+#: Caustic photons at which :func:`caustic_standout` measures (at most; evenly spread).
+STANDOUT_QUERIES = 400
+
+
+def caustic_sample(photons: PhotonMap) -> mi.UInt32:
+    """Up to :data:`STANDOUT_QUERIES` of the map's caustic photons (L S+ D: light, then
+    delta or glossy bounces only, then a diffuse surface), evenly spread over it."""
+    chosen = dr.compress(photons.specular_path & (photons.depth >= 2))
+    count = dr.width(chosen)
+    if count == 0:
+        return chosen
+    return dr.gather(mi.UInt32, chosen, every_nth(count, -(-count // STANDOUT_QUERIES)))
+
+
+def caustic_standout(photons: PhotonMap, radius: float, per_estimate: float) -> float:
+    """How far the caustic light of a global map stands out from the light around it:
+    at its :func:`caustic_sample`, the caustic share of the photons' irradiance
+    estimate there, averaged with the photons' power as weights; 0 where it
+    has none. About 0.5 for focused caustics (a glass sphere's spot, a sunlit glass
+    cube), 0.1 where glass spreads a lamp's light through a room (the white room's, the
+    stairwell kind's glass drop): where a render for a denoiser may trace them instead
+    of mapping them (pipeline.CAUSTIC_MIN_STANDOUT). The global map samples light paths
+    as a caustic pass does up to their first diffuse bounce, so this is known before
+    that pass."""
+    chosen = caustic_sample(photons)
+    if dr.width(chosen) == 0:
+        return 0.0
+    query_p = dr.gather(mi.Point3f, photons.position, chosen)
+    query_n = dr.gather(mi.Vector3f, photons.normal, chosen)
+    weight = mi.luminance(dr.gather(mi.Color3f, photons.power, chosen))
+    ordered, grid = sort_into_grid(photons, radius, per_estimate)
+
+    def estimate(**which):
+        return mi.luminance(estimate_irradiance(ordered, grid, query_p, query_n, boundary=False, **which))
+
+    total = estimate()
+    # Caustic: bounced (depth >= 2) and along a delta/glossy path all the way.
+    caustic_part = estimate(min_depth=2) - estimate(min_depth=2, skip_specular_paths=True)
+    share = dr.select(total > 0, dr.clip(caustic_part / dr.maximum(total, 1e-30), 0.0, 1.0), 0.0)
+    weights = dr.sum(weight)[0]
+    return float(dr.sum(share * weight)[0] / weights) if weights > 0 else 0.0
+
+
 def sort_into_grid(photons, radius: float, per_estimate: float, levels: int | None = None):
     """``(photons reordered, PointGridPyramid)``: the map's grid pyramid for estimates
     of about ``per_estimate`` photons within ``radius``, and the photons in its order,

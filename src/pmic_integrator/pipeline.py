@@ -26,17 +26,17 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import cache as cache_mod, streams
+from . import cache as cache_mod, spectra, streams
 from .emission import focus_box, is_delta, scene_bbox  # noqa: F401  (scene_bbox re-exported)
 from .fingerprint import SceneFingerprint, scene_fingerprint  # noqa: F401 (re-exported)
 from ._jit import concat, every_nth, opaque_float, rng as make_rng
 from .bsdfs import glossy_beside_diffuse, ignores_lobe_masks, lobes_lean, non_diffuse_context
 from .cache import CacheRecords, RecordIndex
-from .gather import NEAR_HIT_LOOKUPS, VISIBILITY_LIFT, GatherSource
+from .gather import NEAR_HIT_LOOKUPS, VISIBILITY_LIFT, GatherSource, trace_gather_rays
 from .hashgrid import BallGrid, PointGridPyramid
 from .lights import RecordLights
-from .irradiance import (adapted_lookup_radius, estimate_irradiance, lookup_radius,
-                         precompute_irradiance, sort_into_grid)
+from .irradiance import (adapted_lookup_radius, caustic_sample, caustic_standout, estimate_irradiance,
+                         lookup_radius, precompute_irradiance, sort_into_grid)
 from .photons import CAUSTIC, GLOBAL, PhotonMap, merge_caustic_photons, trace_photons
 from .settings import Settings, check_against_scene, rays_strata
 from .skylight import SkySampler
@@ -171,6 +171,27 @@ CAUSTIC_PATHS_PER_PHOTON = 20
 #: (10-12×), with luminance 0.980 and 0.977 of `path` against 0.991 and 0.996 (the
 #: density estimates' bias at that sparseness: 0.988 with 93k photons).
 CAUSTIC_MIN_YIELD = 0.1
+#: A render for a denoiser (``aovs`` with the denoiser's guides, the final gather's or
+#: adaptive camera path, no delta light) skips the caustic pass where the global map's
+#: caustics stand out from the light around them by less than this
+#: (irradiance.caustic_standout) and tracing finds them readily
+#: (:data:`CAUSTIC_MAX_TRACED_MOMENT`): light that a lamp's glass spreads through a
+#: room, which the camera paths and the records' gathers then trace. There the map's
+#: pass and its lookups at every camera vertex cost more than it saves: the white room
+#: (standout 0.11, traced moment 16-20) went 1.12-1.28x further per second after OIDN
+#: without it (three runs), at the same brightness. `python benchmarks/caustic_map.py`;
+#: docs/tuning.md, "The caustic map". Raw images keep the map: without it the lamp
+#: room's raw relMSE was 13x, the torus's 500x (fireflies).
+CAUSTIC_MIN_STANDOUT = 0.3
+#: ...where the relative second moment of traced caustic samples (:func:`traced_caustics_moment`)
+#: is at most this: above it, tracing finds them by rare bright samples, which a
+#: denoiser partly removes, light and all. The lamp room (884-1 100) and the stairwell
+#: kind (a lamp 4 cm wide over a glass drop: 2e4 to infinite, one ray in 10^5 met the
+#: lamp) went 2.4-2.6x further per second after OIDN without their maps, but 1.1 % and
+#: 1.5 % darker; the glossy Cornell box (standout 0.40) 180.
+CAUSTIC_MAX_TRACED_MOMENT = 100.0
+#: Cosine rays per caustic photon that measure it (:func:`traced_caustics_moment`).
+CAUSTIC_PILOT_STRATA = (8, 8)
 #: The pass stops as soon as it is clear that it will end under that yield
 #: (photons.GIVE_UP_SIGMAS): the rest of the paths are not traced (1.9 M paths for
 #: nothing in the material preview, 0.2 s). It stopped at half of it before, and a
@@ -408,7 +429,7 @@ def prepare(scene: mi.Scene, settings: Settings, key: tuple | None = None,
 
     t0 = time.perf_counter()
     global_map, caustic_map = trace_maps(scene, settings, info, need_global, need_caustic, skipped,
-                                         progress)
+                                         progress, stats)
     dr.sync_thread()
     stats["time_photons"] = time.perf_counter() - t0
     stats["photons_global"] = global_map.count
@@ -498,9 +519,72 @@ def max_paths(settings: Settings, photons: int) -> int:
     return max(MAX_PATHS_PER_PHOTON * photons, MIN_MAX_PATHS)
 
 
+def leaves_caustics_to_denoiser(settings: Settings, info: SceneInfo) -> bool:
+    """Whether this render may skip its caustic pass for a denoiser where caustics do not
+    stand out (:data:`CAUSTIC_MIN_STANDOUT`): an image meant for one (the denoiser's
+    guides), a camera path that traces its first bounce (the final gather's, the
+    adaptive estimator's), no delta light."""
+    return settings.denoiser_guides and settings.final_gather_camera and not info.has_delta_emitter
+
+
+def caustics_traced_for_denoiser(scene, settings: Settings, info: SceneInfo, global_map: PhotonMap,
+                                 stats: dict) -> str:
+    """Why a render for a denoiser traces the caustics of this global map instead of
+    mapping them ('' where it maps them): they stand out little from the light around
+    them (:data:`CAUSTIC_MIN_STANDOUT`) and tracing finds them readily
+    (:data:`CAUSTIC_MAX_TRACED_MOMENT`). Records the figures in ``stats``."""
+    radius = lookup_radius(info.surface_area, global_map.count, settings.lookup_size)
+    standout = stats["caustic_standout"] = caustic_standout(global_map, radius, settings.lookup_size)
+    if standout >= CAUSTIC_MIN_STANDOUT:
+        return ""
+    moment = stats["caustic_traced_moment"] = traced_caustics_moment(
+        scene, settings, info, global_map, ray_offset(info.diagonal, radius))
+    if not moment <= CAUSTIC_MAX_TRACED_MOMENT:
+        return ""
+    stats["caustics_left_to_denoiser"] = True
+    return (f"caustic map: for a denoiser, caustics that stand out {standout:.2f} from the light "
+            f"around them (under {CAUSTIC_MIN_STANDOUT}) and that tracing finds readily (relative "
+            f"second moment {moment:.0f}, at most {CAUSTIC_MAX_TRACED_MOMENT:.0f}) are traced instead")
+
+
+def traced_caustics_moment(scene, settings: Settings, info: SceneInfo, global_map: PhotonMap,
+                           offset: float) -> float:
+    """The relative second moment, E[v²] / E[v]², of the caustic light v that one gather
+    ray finds by tracing (emission met after delta and glossy bounces, as the records'
+    gathers and the camera paths count it without a caustic map), over
+    :data:`CAUSTIC_PILOT_STRATA` cosine rays from each photon of the global map's
+    :func:`~pmic_integrator.irradiance.caustic_sample`: 1 where every ray finds the
+    same light, large where a few find it all (a small lamp seen through glass); +inf
+    where none does."""
+    chosen = caustic_sample(global_map)
+    if dr.width(chosen) == 0:
+        return math.inf
+    source = GatherSource.build(PhotonMap.empty(), 1.0)  # (no photons: only traced light)
+    source.caustics_by_gathering = True
+    source.crossing, source.inseparable = info.has_diffuse_transmission, info.has_inseparable
+    source.leaning = info.has_leaning_lobes
+    ray, _, _, _, _, rng = cache_mod._stratified_rays(
+        dr.gather(mi.Point3f, global_map.position, chosen), dr.gather(mi.Vector3f, global_map.normal, chosen),
+        CAUSTIC_PILOT_STRATA, settings.seed, streams.CAUSTIC_PILOT, offset)
+    if mi.is_spectral:
+        ray.wavelengths, weight = spectra.sample_wavelengths(rng.next_float32())
+        spectra.prepare_basis()  # (the walk's loop reads it; the first call may come here)
+    radiance, _ = trace_gather_rays(scene, source, ray, rng, mi.Bool(True))
+    if mi.is_spectral:
+        radiance = spectra.to_rgb(radiance * weight, ray.wavelengths)
+    value = mi.luminance(mi.Color3f(radiance))
+    dr.eval(value)  # (then sums of it: a mean's width would be written into the walk's kernel)
+    total, squares = dr.sum(value)[0], dr.sum(dr.square(value))[0]
+    if not (total > 0 and math.isfinite(squares)):
+        return math.inf
+    return float(squares * dr.width(value) / (total * total))
+
+
 def trace_maps(scene, settings: Settings, info: SceneInfo, need_global: bool, need_caustic: bool,
-               skipped: list, progress: Progress):
-    """Stage 1: the global and caustic photon maps (empty where not needed)."""
+               skipped: list, progress: Progress, stats: dict | None = None):
+    """Stage 1: the global and caustic photon maps (empty where not needed). ``stats``
+    (if given) records the caustic standout where it was measured
+    (:func:`leaves_caustics_to_denoiser`)."""
     global_map = caustic_map = PhotonMap.empty()
     if need_global:
         global_map = trace_photons(scene, GLOBAL, settings.global_photons, settings.max_depth,
@@ -517,6 +601,12 @@ def trace_maps(scene, settings: Settings, info: SceneInfo, need_global: bool, ne
         # Every caustic photon would also have been stored in the global map.
         skipped.append("caustic map: no global photon reached a diffuse surface")
         need_caustic = False
+    if need_caustic and need_global and leaves_caustics_to_denoiser(settings, info):
+        reason = caustics_traced_for_denoiser(scene, settings, info, global_map,
+                                              {} if stats is None else stats)
+        if reason:
+            skipped.append(reason)
+            need_caustic = False
     if need_caustic:
         paths = min(max_paths(settings, settings.caustic_photons),
                     CAUSTIC_PATHS_PER_PHOTON * settings.caustic_photons)

@@ -52,6 +52,13 @@ def to_rgb(value, wavelengths) -> mi.Color3f:
     return mi.spectrum_to_srgb(mi.Spectrum(value), wavelengths)
 
 
+def prepare_basis() -> None:
+    """Build :func:`from_rgb`'s table now, before a symbolic loop that calls it: built
+    inside one, its arrays cannot be evaluated (RGB variants: nothing to do)."""
+    if mi.is_spectral:
+        _basis_table(mi.variant())
+
+
 def from_rgb(rgb, wavelengths) -> mi.Spectrum:
     """The spectrum at ``wavelengths`` of stored linear sRGB ``rgb`` (see the module)."""
     if not mi.is_spectral:

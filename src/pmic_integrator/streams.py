@@ -33,6 +33,7 @@ RECORD_DIRECT = 11  #: emitter samples of a record's direct irradiance
 RECORD_DIRECT_DELTA = 12  #: ...and its samples of the delta lights (a sun, a spot)
 RECORD_GATHER_REST = 13  #: the rest of a record's gather rays (pipeline.FIRST_GATHER_SHARE)
 RECORD_SURROUNDINGS = 14  #: rays that survey what surrounds each record (cache.record_surroundings)
+CAUSTIC_PILOT = 15  #: rays that trace caustic light from caustic photons (pipeline.traced_caustics_moment)
 CAMERA_POINTS = 101  #: ``irradiance_cache`` only: the camera rays that seed its records
 SURFACE_PROBES = 103  #: the view-independent probes sampled on every surface by area
 SURFACE_MASS = 107  #: probes of the surface under a precomputed estimate's disc (boundary.py)
