@@ -334,6 +334,10 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
     (``irradiance_caustic``), for gather rays that bounce on at a near hit
     (:func:`~pmic_integrator.gather.trace_gather_rays`).
 
+    Where the even paths' photons are sparse (:data:`SPARSE_CELL_RADII`), every one of
+    them is in A too, estimated from the odd half: one in ``stride`` left a dim room
+    with a precomputed photon every few lookup radii.
+
     ``surface`` (``(scene, seed, ray offset)``, or None): each estimate is divided by
     the part of its disc that lies on its surface, measured by probes traced over it
     (:func:`~pmic_integrator.boundary.surface_mass`), instead of the photons' centroid
