@@ -61,7 +61,7 @@ def caustic_figures(scene: mi.Scene) -> dict:
     if photons.count == 0:
         return figures
     power = mi.luminance(photons.power)
-    caustic = photons.specular_path & (photons.depth >= 2)
+    caustic = photons.caustic
     caustic_power = dr.sum(dr.select(caustic, power, 0.0))[0]
     direct_power = dr.sum(dr.select(photons.depth == 1, power, 0.0))[0]
     figures["share"] = float(caustic_power / max(caustic_power + direct_power, 1e-30))

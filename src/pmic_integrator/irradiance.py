@@ -18,7 +18,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import boundary
-from ._jit import concat, every_nth, finite, opaque_float, opaque_u32, scatter_count
+from ._jit import every_nth, finite, opaque_float, opaque_u32, scatter_count
 from .hashgrid import PointGrid, PointGridPyramid, _neighbour_offset, _next_pow2, cell_of, hash_cell
 from .photons import PhotonMap
 
@@ -370,7 +370,8 @@ def precompute_irradiance(photons: PhotonMap, radius: float, per_estimate: float
         # odd half only: B (the rest) would be thinned exactly there by taking them.
         odd = photons.select(dr.compress((photons.path & 1) == 1))
         odd.paths_emitted = photons.paths_emitted // 2
-        half_a = _joined(half_a, _estimated_at(photons.select(extra), odd, *settings))
+        half_a = half_a.joined(_estimated_at(photons.select(extra), odd, *settings))
+        dr.eval(half_a)
     return half_a
 
 
@@ -429,23 +430,6 @@ def _estimated_at(half_a: PhotonMap, half_b: PhotonMap, paths: int, radius: floa
     return half_a
 
 
-def _joined(a: PhotonMap, b: PhotonMap) -> PhotonMap:
-    """The photons of ``a`` then ``b`` (precomputed alike; the same ``paths_emitted``)."""
-    def both(name, dtype):
-        x, y = getattr(a, name), getattr(b, name)
-        return None if x is None or y is None else concat([x, y], dtype)
-
-    out = PhotonMap(both("position", mi.Point3f), both("normal", mi.Vector3f), both("power", mi.Color3f),
-                    both("depth", mi.UInt32), both("specular_path", mi.Bool), both("path", mi.UInt32),
-                    a.paths_emitted, irradiance=both("irradiance", mi.Color3f),
-                    irradiance_nodelta=both("irradiance_nodelta", mi.Color3f),
-                    delta_light=both("delta_light", mi.Bool),
-                    irradiance_caustic=both("irradiance_caustic", mi.Color3f),
-                    shared_path=both("shared_path", mi.Bool))
-    dr.eval(out)
-    return out
-
-
 def nearest_photon(photons: PhotonMap, grid: PointGrid, query_p: mi.Point3f,
                    query_n: mi.Vector3f, radius, active=True, octant: bool = False):
     """Index of the nearest photon on the query's surface within ``radius``.
@@ -481,7 +465,7 @@ STANDOUT_QUERIES = 400
 def caustic_sample(photons: PhotonMap) -> mi.UInt32:
     """Up to :data:`STANDOUT_QUERIES` of the map's caustic photons (L S+ D: light, then
     delta or glossy bounces only, then a diffuse surface), evenly spread over it."""
-    chosen = dr.compress(photons.specular_path & (photons.depth >= 2))
+    chosen = dr.compress(photons.caustic)
     count = dr.width(chosen)
     if count == 0:
         return chosen

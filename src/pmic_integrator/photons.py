@@ -143,6 +143,27 @@ class PhotonMap:
     def count(self) -> int:
         return dr.width(self.depth) if self.depth is not None else 0
 
+    @property
+    def caustic(self) -> mi.Bool:
+        """Per photon: a caustic photon (L S+ D: light, then delta or glossy bounces only,
+        then this diffuse surface)."""
+        return self.specular_path & (self.depth >= 2)
+
+    def joined(self, other: "PhotonMap") -> "PhotonMap":
+        """These photons, then ``other``'s (each field where both have it; this map's
+        ``paths_emitted``)."""
+        def both(name, dtype):
+            x, y = getattr(self, name), getattr(other, name)
+            return None if x is None or y is None else concat([x, y], dtype)
+
+        return PhotonMap(both("position", mi.Point3f), both("normal", mi.Vector3f), both("power", mi.Color3f),
+                         both("depth", mi.UInt32), both("specular_path", mi.Bool), both("path", mi.UInt32),
+                         self.paths_emitted, irradiance=both("irradiance", mi.Color3f),
+                         irradiance_nodelta=both("irradiance_nodelta", mi.Color3f),
+                         delta_light=both("delta_light", mi.Bool),
+                         irradiance_caustic=both("irradiance_caustic", mi.Color3f),
+                         shared_path=both("shared_path", mi.Bool))
+
     def bounced_share(self) -> float:
         """The share of the photons' power (luminance) that bounced off a surface
         before landing (depth 2 and more): how much of a scene's light is indirect
@@ -666,8 +687,7 @@ def merge_caustic_photons(caustic: PhotonMap, global_map: PhotonMap) -> PhotonMa
     n_odd = global_map.paths_emitted // 2
     if n_caustic == 0 or n_odd == 0:
         return caustic
-    extra = dr.compress(global_map.specular_path & global_map.shared_path & (global_map.depth >= 2)
-                        & ((global_map.path & 1) == 1))
+    extra = dr.compress(global_map.caustic & global_map.shared_path & ((global_map.path & 1) == 1))
     total = n_caustic + n_odd
     # Opaque: the path counts move with the photon seed (constants: a kernel per seed).
     merged = replace(caustic, power=dr.select(caustic.shared_path,
@@ -677,13 +697,7 @@ def merge_caustic_photons(caustic: PhotonMap, global_map: PhotonMap) -> PhotonMa
         more = global_map.select(extra)
         more.power = more.power * opaque_float(global_map.paths_emitted / total)
         more.path = more.path + opaque_u32(n_caustic)  # unique path indices in the merged map
-        merged = PhotonMap(concat([merged.position, more.position], mi.Point3f),
-                           concat([merged.normal, more.normal], mi.Vector3f),
-                           concat([merged.power, more.power], mi.Color3f),
-                           concat([merged.depth, more.depth], mi.UInt32),
-                           concat([merged.specular_path, more.specular_path], mi.Bool),
-                           concat([merged.path, more.path], mi.UInt32),
-                           n_caustic, delta_light=concat([merged.delta_light, more.delta_light], mi.Bool))
+        merged = merged.joined(more)
     merged.shared_path = None
     dr.eval(merged.position, merged.normal, merged.power, merged.depth, merged.specular_path,
             merged.path, merged.delta_light)

@@ -547,6 +547,15 @@ def caustics_traced_for_denoiser(scene, settings: Settings, info: SceneInfo, glo
             f"second moment {moment:.0f}, at most {CAUSTIC_MAX_TRACED_MOMENT:.0f}) are traced instead")
 
 
+def _with_scene_bsdfs(source: GatherSource, info: SceneInfo) -> GatherSource:
+    """``source`` told what the scene's BSDFs need of gather rays (those that transmit,
+    ignore lobe masks, or lean); returns it."""
+    source.crossing = info.has_diffuse_transmission
+    source.inseparable = info.has_inseparable
+    source.leaning = info.has_leaning_lobes
+    return source
+
+
 def traced_caustics_moment(scene, settings: Settings, info: SceneInfo, global_map: PhotonMap,
                            offset: float) -> float:
     """The relative second moment, E[v²] / E[v]², of the caustic light v that one gather
@@ -559,10 +568,8 @@ def traced_caustics_moment(scene, settings: Settings, info: SceneInfo, global_ma
     chosen = caustic_sample(global_map)
     if dr.width(chosen) == 0:
         return math.inf
-    source = GatherSource.build(PhotonMap.empty(), 1.0)  # (no photons: only traced light)
+    source = _with_scene_bsdfs(GatherSource.build(PhotonMap.empty(), 1.0), info)  # (only traced light)
     source.caustics_by_gathering = True
-    source.crossing, source.inseparable = info.has_diffuse_transmission, info.has_inseparable
-    source.leaning = info.has_leaning_lobes
     ray, _, _, _, _, rng = cache_mod._stratified_rays(
         dr.gather(mi.Point3f, global_map.position, chosen), dr.gather(mi.Vector3f, global_map.normal, chosen),
         CAUSTIC_PILOT_STRATA, settings.seed, streams.CAUSTIC_PILOT, offset)
@@ -713,10 +720,8 @@ def precompute(scene: mi.Scene, settings: Settings, info: SceneInfo, global_map:
                                   surface=(scene, settings.seed, ray_offset(info.diagonal, global_radius))
                                   if SURFACE_PROBED_ESTIMATES else None),
             global_radius)
+        gather_source = _with_scene_bsdfs(gather_source, info)
         gather_source.caustics_by_gathering = caustic_map.count == 0
-        gather_source.crossing = info.has_diffuse_transmission
-        gather_source.inseparable = info.has_inseparable
-        gather_source.leaning = info.has_leaning_lobes
         if depth_limit is None:
             gather_source.near_hit_distance = NEAR_HIT_LOOKUPS * global_radius
         if gather_source.photons.count == 0:
