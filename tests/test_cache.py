@@ -627,3 +627,19 @@ def test_records_direct_light_beside_an_emitter_stays_bounded(seed):
     direct = np.array(mi.luminance(integrator.prepared.index.direct))
     assert np.all(np.isfinite(direct))
     assert direct.max() <= np.pi * radiance
+
+
+def test_a_records_left_out_error_is_its_neighbours_prediction_of_it():
+    """Three records on a floor, 0.5 apart, R = 4 (Ward weights 1/ε − 1/a: 6 at 0.5, 2
+    at 1.0), irradiance 1, 2 and 5, no gradients: left out, each is predicted by the
+    other two as interpolation would read it there. The middle one: (1 + 5)/2 = 3,
+    squared relative error (1/2)² = 0.25; the first: (6·2 + 2·5)/8 = 2.75, (1.75/1)²;
+    the last: (2·1 + 6·2)/8 = 1.75, (3.25/5)². A record no other reaches: +inf."""
+    zeros = mi.Vector3f([0.0] * 4, [0.0] * 4, [0.0] * 4)
+    e = [1.0, 2.0, 5.0, 1.0]
+    records = CacheRecords(mi.Point3f([0.0, 0.5, 1.0, 50.0], [0.0] * 4, [0.0] * 4),
+                           mi.Vector3f([0.0] * 4, [0.0] * 4, [1.0] * 4), mi.Float([4.0] * 4),
+                           mi.Color3f(e, e, e), (zeros,) * 3, (zeros,) * 3)
+    error = np.array(RecordIndex.build(records, 0.5).left_out_error())
+    assert error[:3] == pytest.approx([1.75 ** 2, 0.25, (3.25 / 5.0) ** 2], rel=1e-4)
+    assert error[3] == np.inf

@@ -1143,9 +1143,14 @@ class RecordIndex:
     packed_body: mi.Float = field(default=None, metadata={"derived": True})
     #: :meth:`bounce_variance`, once computed (derived from the records).
     ray_variance: mi.Float = field(default=None, metadata={"derived": True})
+    #: :meth:`left_out_error`, once computed (derived from the records).
+    left_out: mi.Float = field(default=None, metadata={"derived": True})
     #: Per record, whether the adaptive estimator may read it at a camera path's first
     #: hit (:meth:`survey_first_reads`); None: not surveyed, none may.
     first_readable: mi.Bool = field(default=None, metadata={"derived": True})
+    #: Per record, the sample count per pixel up to which such a read pays
+    #: (:func:`~pmic_integrator.render.reads.survey_first_reads`; 0 where not readable).
+    first_read_spp: mi.Float = field(default=None, metadata={"derived": True})
 
     @staticmethod
     def build(records: CacheRecords, max_error: float, scene=None, lift: float = 0.0,
@@ -1234,11 +1239,12 @@ class RecordIndex:
                            visibility=self._visibility())
 
     def _weighted_sum(self, grid: BallGrid, max_error: float, x, n, shading_n, active, label,
-                      with_direct: bool = False):
+                      with_direct: bool = False, exclude: mi.UInt32 = None):
         """``(Σ wᵢ Eᵢ(x), Σ wᵢ, Σ wᵢ Rᵢ)`` over the records of ``grid`` that reach
         (x, n) with maximum error ``max_error`` and see x, in the grid's order (see
         :data:`INTERPOLATION_SLOTS`); with ``with_direct``, and ``Σ wᵢ Dᵢ``, the
-        records' own direct light (part of Eᵢ(x))."""
+        records' own direct light (part of Eᵢ(x)); but for record ``exclude`` of each
+        lane (None: none)."""
         r = self.records
         lanes = dr.width(x)
         slots = INTERPOLATION_SLOTS
@@ -1248,13 +1254,15 @@ class RecordIndex:
             rp, rn, rr = self._record_geometry(index, valid)
             # (Ward's test implies a positive weight: the second pass tests that too.)
             ok = valid & covers(x, n, rp, rn, rr, max_error)
+            if exclude is not None:
+                ok &= index != exclude
             slot = [dr.select(ok & (count == k), index, slot[k]) for k in range(slots)]
             return (dr.select(ok, count + 1, count), *slot)
 
         zeros = dr.zeros(mi.UInt32, lanes)
         count, *slot = grid.for_each_ball(x, (zeros, *[mi.UInt32(zeros) for _ in range(slots)]),
                                           find, active=active, label=label + "_find")
-        accumulate = self._record_term(max_error, x, n, shading_n, with_direct)
+        accumulate = self._record_term(max_error, x, n, shading_n, with_direct, exclude)
 
         def cond(k, state):
             return active & (k < dr.minimum(count, slots))
@@ -1285,7 +1293,8 @@ class RecordIndex:
         h = dr.gather(mi.ArrayXf, self.packed_head, index, valid, shape=(PACKED_HEAD, dr.width(index)))
         return mi.Point3f(h[0], h[1], h[2]), mi.Vector3f(h[3], h[4], h[5]), mi.Float(h[6])
 
-    def _record_term(self, max_error: float, x, n, shading_n, with_direct: bool = False):
+    def _record_term(self, max_error: float, x, n, shading_n, with_direct: bool = False,
+                     exclude: mi.UInt32 = None):
         """``visit(state, index, valid)`` adding record ``index``'s weighted,
         extrapolated irradiance at (x, n) to ``state = (Σ wE, Σ w, Σ wR)`` where it
         reaches and sees x (with ``with_direct``, also to Σ wD: its direct light)."""
@@ -1300,6 +1309,8 @@ class RecordIndex:
             total, weight_sum, radius_sum, *direct_sum = state
             rp, rn, rr = self._record_geometry(index, valid)
             ok = valid & covers(x, n, rp, rn, rr, max_error)
+            if exclude is not None:
+                ok &= index != exclude
             w = interpolation_weight(ward_error(x, n, rp, rn, rr), max_error)
             ok &= w > 0
             dx = x - rp
@@ -1369,6 +1380,23 @@ class RecordIndex:
             self.ray_variance = dr.select(mean_l > 0, variance, 0.0)
             dr.eval(self.ray_variance)
         return self.ray_variance
+
+    def left_out_error(self) -> mi.Float:
+        """Per record, the squared relative error with which the other records predict
+        its bounced irradiance where it lies (leave-one-out: interpolated as a camera
+        vertex there would be, this record left out; luminance): an estimate of the
+        error a read near it carries, its noise and the interpolation's together.
+        +inf where no other record reaches it or it found no light. Computed once."""
+        if self.left_out is None:
+            r = self.records
+            others, covered, direct = self.interpolate(
+                r.position, r.normal, shading_n=r.shading_normal, with_direct=True,
+                exclude=dr.arange(mi.UInt32, r.count))
+            own = mi.luminance(r.irradiance)
+            error = dr.square(mi.luminance(others - direct) - own) / dr.maximum(dr.square(own), 1e-30)
+            self.left_out = dr.select(covered & (own > 0), error, dr.inf)
+            dr.eval(self.left_out)
+        return self.left_out
 
     @property
     def guides(self) -> bool:
@@ -1490,7 +1518,8 @@ class RecordIndex:
         return dr.select(active, dr.maximum(upper - lower, 0.0) * (1.0 / GUIDE_BIN_SOLID_ANGLE), 0.0)
 
     def interpolate(self, x: mi.Point3f, n: mi.Vector3f, active=True, with_radius: bool = False,
-                    shading_n: mi.Vector3f = None, with_direct: bool = False):
+                    shading_n: mi.Vector3f = None, with_direct: bool = False,
+                    exclude: mi.UInt32 = None):
         """E(x) = Σ wᵢ Eᵢ(x) / Σ wᵢ with gradients; returns ``(E, covered)``, and with
         ``with_radius`` also the weighted mean record radius Σ wᵢ Rᵢ / Σ wᵢ (how far
         the geometry the records saw is: the final gather's trust test).
@@ -1502,6 +1531,7 @@ class RecordIndex:
         ``n``) the shading normal on that side, for the rotational gradient. With
         ``with_direct``, last comes the part of E that is the records' own direct light
         (final gather: :attr:`direct`, with caustics where the records hold them).
+        ``exclude``: a record each lane leaves out (:meth:`left_out_error`).
         """
         lanes = dr.width(x)
         shading_n = mi.Vector3f(n if shading_n is None else shading_n)
@@ -1512,10 +1542,10 @@ class RecordIndex:
         self._require_lookup()
         active = mi.Bool(active)
         sums = self._weighted_sum(self.grid, self.max_error, x, n, shading_n, active,
-                                  "cache_interpolation", with_direct)
+                                  "cache_interpolation", with_direct, exclude)
         gap = active & (sums[1] <= 0)
         backup = self._weighted_sum(self.backup_grid, self.max_error * BACKUP_REACH, x, n,
-                                    shading_n, gap, "cache_interpolation_backup", with_direct)
+                                    shading_n, gap, "cache_interpolation_backup", with_direct, exclude)
         total, weight_sum, radius_sum, *direct_sum = (dr.select(gap, b, a) for a, b in zip(sums, backup))
         covered = weight_sum > 0
         safe_sum = dr.maximum(weight_sum, 1e-30)

@@ -369,7 +369,7 @@ class _PMICMethods:
                     sensor, streams.render_pass_seed(seed, pass_index), pass_spp)
                 ray, weight, position = camera.camera_rays(sensor, sampler)
                 radiance, valid, aovs = self._sample(scene, sampler, ray, mi.Bool(True),
-                                                     own_render=True)
+                                                     own_render=True, spp=spp)
                 block = film.create_block()
                 camera.splat(film, block, position, radiance * weight, valid, aovs,
                              ray.wavelengths)
@@ -396,12 +396,14 @@ class _PMICMethods:
         photon map) and the caustic map, continued through the other lobes. Called by
         an integrator wrapping this one (Mitsuba's ``aov``) after render(): it reads
         the view of the last render, its caustic-map reads made in the loop."""
-        return self._sample(scene, sampler, ray, active, own_render=False)
+        return self._sample(scene, sampler, ray, active, own_render=False,
+                            spp=sampler.sample_count())
 
-    def _sample(self, scene, sampler, ray, active, own_render: bool):
+    def _sample(self, scene, sampler, ray, active, own_render: bool, spp: int):
+        """Camera paths for ``ray``, in a render of ``spp`` samples per pixel in all."""
         view = self._view
-        config = PathConfig.of(self.settings, view, own_render)
-        ctx = PathContext.of(scene, view, config, self._fallback_counter, self.skip_area_emitters)
+        config = PathConfig.of(self.settings, view, own_render, spp)
+        ctx = PathContext.of(scene, view, config, self._fallback_counter, self.skip_area_emitters, spp)
         state, guides = trace_camera_paths(ctx, sampler, ray, active)
         L, L_caustic = state.L, state.L_caustic
         if config.defer_caustics:

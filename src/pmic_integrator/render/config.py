@@ -63,12 +63,14 @@ def may_read_first_hits(settings: Settings, info) -> bool:
         not settings.bounded and not settings.denoiser_guides and not info.has_delta_emitter
 
 
-def first_reads(settings: Settings, prepared: PreparedScene) -> bool:
-    """Whether this render reads records at first vertices: where they are allowed
-    (:func:`first_reads_allowed`) and some record qualifies."""
-    from .reads import any_first_reads  # (reads builds on this module)
+def first_reads(settings: Settings, prepared: PreparedScene, spp: int) -> bool:
+    """Whether this render, of ``spp`` samples per pixel, reads records at first
+    vertices: where they are allowed (:func:`first_reads_allowed`) and some record
+    qualifies at that sample count (reads.first_read_limit)."""
+    from .reads import any_first_reads, first_read_limit  # (reads builds on this module)
 
-    return first_reads_allowed(settings, prepared) and any_first_reads(prepared.index)
+    return first_reads_allowed(settings, prepared) and any_first_reads(prepared.index) and \
+        first_read_limit(prepared.index) >= spp
 
 
 @dataclass(frozen=True)
@@ -131,9 +133,10 @@ class PathConfig:
         return aov in self.aovs
 
     @staticmethod
-    def of(settings: Settings, prepared: PreparedScene, own_render: bool) -> "PathConfig":
+    def of(settings: Settings, prepared: PreparedScene, own_render: bool, spp: int = 1) -> "PathConfig":
         """The switches for ``settings`` on ``prepared`` (``own_render``: called from
-        pmic's own render(), which makes the deferred caustic reads)."""
+        pmic's own render(), which makes the deferred caustic reads) in a render of
+        ``spp`` samples per pixel."""
         info, index = prepared.info, prepared.index
         gather_first = settings.final_gather_camera
         has_caustic_map = prepared.caustic_map.count > 0
@@ -151,7 +154,7 @@ class PathConfig:
             prepared.global_map.count > 0,
             reads_cache=settings.method != "photon_map", gather_first=gather_first,
             records_hold_caustics=index is not None and index.holds_caustics,
-            first_reads=first_reads(settings, prepared),
+            first_reads=first_reads(settings, prepared, spp),
             diffuse_mis=info.has_infinite_emitter, delta_lights=info.has_delta_emitter,
             coat_rays=info.has_delta_coat,
             lobes_split=gather_first and has_caustic_map and info.has_glossy_coat,
@@ -177,15 +180,20 @@ class PathContext:
     #: The trust radius where no record reaches: the global map's lookup radius (opaque:
     #: the photons set it, and a constant would make a kernel per seed).
     untrusted_radius: mi.Float
+    #: The render's samples per pixel (opaque: a constant would make a kernel per
+    #: count): records are read at first vertices below a count of their own
+    #: (reads.first_read_pays).
+    spp: mi.Float
     #: Mitsuba's ``SamplingIntegrator.skip_area_emitters`` (hidden emitters are looked
     #: through), bound to the integrator.
     skip_area_emitters: object
 
     @staticmethod
     def of(scene, view: PreparedScene, config: PathConfig, fallback_counter,
-           skip_area_emitters) -> "PathContext":
+           skip_area_emitters, spp: int = 1) -> "PathContext":
         return PathContext(scene, view, config, fallback_counter,
-                           dr.opaque(mi.Float, view.global_radius), skip_area_emitters)
+                           dr.opaque(mi.Float, view.global_radius), dr.opaque(mi.Float, spp),
+                           skip_area_emitters)
 
     def count_fallback(self, need) -> None:
         """Count the camera vertices that no record reached (stats)."""

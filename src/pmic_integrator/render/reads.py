@@ -88,6 +88,18 @@ FIRST_READ_MIN_SUPPORT = 0.25
 #: few of their rays: read at the first hit they were record-sized blotches (the lamp
 #: room: relMSE after OIDN 1.1e-1 without this test, 2.1e-2 with it).
 FIRST_READ_MAX_VARIANCE = 8.0
+#: A read at the first hit trades the traced bounce's noise, which falls as 1/spp, for
+#: the record's error, which does not. Up to this many samples per pixel every record
+#: the survey passes is read (at 16 spp reads won in every scene measured; at 64 they
+#: still won in Sponza and the door-ajar kind, lost in the material preview);...
+FIRST_READ_ANY_SPP = 64
+#: ...above it, only records whose traced bounce's relative variance
+#: (RecordIndex.bounce_variance) over this many times their squared relative error
+#: (RecordIndex.left_out_error) is at least the sample count. Without it, at 256 spp
+#: the material preview had 3.5x the final gather's relMSE and the white room 2.4x;
+#: with it, 1.3x and 1.4x, and Sponza and the door-ajar kind gained too (docs/tuning.md,
+#: "First reads at high sample counts").
+FIRST_READ_ERROR_SCALE = 4.0
 
 
 def survey_first_reads(scene, settings, prepared) -> None:
@@ -110,12 +122,26 @@ def survey_first_reads(scene, settings, prepared) -> None:
         return
     glossy, support, glossy_light = record_surroundings(scene, prepared.gather_source, index.records,
                                                         settings.seed, prepared.ray_offset)
+    variance = index.bounce_variance()
     readable = (glossy <= FIRST_READ_MAX_GLOSSY) & (support >= FIRST_READ_MIN_SUPPORT) & \
         (glossy_light <= FIRST_READ_MAX_GLOSSY_LIGHT) & \
-        (index.bounce_variance() <= FIRST_READ_MAX_VARIANCE) & \
+        (variance <= FIRST_READ_MAX_VARIANCE) & \
         (mi.luminance(index.records.irradiance) > 0)
-    dr.eval(readable)
+    # (A record that no other reaches has no error estimate: read up to FIRST_READ_ANY_SPP.)
+    error = index.left_out_error()
+    paying = dr.select(dr.isfinite(error), variance / (FIRST_READ_ERROR_SCALE * dr.maximum(error, 1e-30)), 0.0)
+    index.first_read_spp = dr.select(readable, dr.maximum(paying, FIRST_READ_ANY_SPP), 0.0)
+    dr.eval(readable, index.first_read_spp)
     index.first_readable = readable
+
+
+def first_read_limit(index) -> float:
+    """The largest sample count per pixel at which some record of ``index`` is read at
+    a first vertex (:data:`FIRST_READ_ANY_SPP`, :data:`FIRST_READ_ERROR_SCALE`; 0: none
+    is)."""
+    if index.first_read_spp is None:
+        return 0.0
+    return index.remembered("first_read_limit", lambda: float(dr.max(index.first_read_spp)[0]))
 
 
 def any_first_reads(index) -> bool:
@@ -143,6 +169,9 @@ def first_read_pays(ctx: PathContext, v: Vertex, active):
         lambda: (dr.zeros(mi.UInt32, lanes), dr.zeros(mi.Float, lanes)), label="first_read_record")
     active &= bounced_share > 0
     active &= dr.gather(mi.Bool, index.first_readable, record, active)
+    # Only up to the sample count at which the record's error would show above the
+    # traced bounce's noise (survey_first_reads, FIRST_READ_ERROR_SCALE).
+    active &= dr.gather(mi.Float, index.first_read_spp, record, active) >= ctx.spp
     # The guiding record is found without a visibility test: read at the first hit,
     # one behind a wall (outside a closed box standing on a floor, under a sky) lit
     # the box's inside (brightest pixel 7.7e-3 where path is black). It must see the
