@@ -181,7 +181,7 @@ class PathContext:
     #: the photons set it, and a constant would make a kernel per seed).
     untrusted_radius: mi.Float
     #: The render's samples per pixel (opaque: a constant would make a kernel per
-    #: count): records are read at first vertices below a count of their own
+    #: count): records are read at first vertices up to a count of their own
     #: (reads.first_read_pays).
     spp: mi.Float
     #: Mitsuba's ``SamplingIntegrator.skip_area_emitters`` (hidden emitters are looked
