@@ -106,16 +106,9 @@ def main(argv=None) -> int:
     if min(args.spp) < 1:
         parser.error(f"--spp must be integers >= 1, got {args.spp}")
     mi.set_variant(common.VARIANT)
-    rows = []
-    for name in args.scenes:
-        found = public_scenes.reference_of(name)
-        if found is None:
-            print(f"{name}: no reference, skipped")
-            continue
-        rows.append(measure(name, common.load_public(name), found, args.spp, args.seeds, print))
-    for name in args.kinds:
-        scene, found = public_scenes.load_kind(name, args.reference_seconds, args.kind_scale)
-        rows.append(measure(f"{name} (×{args.kind_scale})", scene, found, args.spp, args.seeds, print))
+    rows = [measure(label, scene, found, args.spp, args.seeds, print)
+            for label, scene, found in public_scenes.scenes_with_references(
+                args.scenes, args.kinds, args.reference_seconds, args.kind_scale, print)]
     lines = markdown(rows, args.spp, args.seeds, common.command(__file__, argv))
     md = common.write_results(common.RESULTS, args.stem, rows, lines)
     print(f"written {md}")

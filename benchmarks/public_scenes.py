@@ -93,6 +93,22 @@ def load_kind(name: str, reference_seconds: float, scale: int = 1):
     return scene, (ref.image, ref.noise, f"kept ({ref.spp} spp)")
 
 
+def scenes_with_references(scenes, kinds, reference_seconds: float, kind_scale: int, log):
+    """``(label, scene, (reference, its noise, origin))`` of each public scene of ``scenes``
+    that has a reference (the others logged and skipped), then of each kind of
+    ``kinds`` at ``kind_scale`` (labelled ``name (×scale)``; its reference rendered
+    for ``reference_seconds`` and kept)."""
+    for name in scenes:
+        found = reference_of(name)
+        if found is None:
+            log(f"{name}: no reference, skipped")
+            continue
+        yield name, common.load_public(name), found
+    for name in kinds:
+        scene, found = load_kind(name, reference_seconds, kind_scale)
+        yield f"{name} (×{kind_scale})", scene, found
+
+
 def measure_kind(name: str, spp: int, reference_seconds: float, log, scale: int = 1, spec=None,
                  path_seeds: int = 1):
     scene, found = load_kind(name, reference_seconds, scale)
