@@ -107,3 +107,34 @@ def test_save_before_any_render_is_refused(tmp_path):
     integrator = mi.load_dict({"type": "pmic"})
     with pytest.raises(ValueError, match="nothing to save"):
         integrator.save_cache(tmp_path / "x.npz")
+
+
+@pytest.mark.rgb_only('the fresh process renders in llvm_ad_rgb')
+@pytest.mark.parametrize("method", ["pmic", "photon_map"])
+def test_a_principled_metal_round_trips_in_a_fresh_process(tmp_path, method):
+    """Which BSDFs are principled metals (bsdfs.diffuse_free) is known by their registry
+    indices, which are the process's: a loaded cache finds them again in its scene, and
+    its image is the one rendered where it was built (``photon_map`` with
+    ``final_gather``: camera paths trace gather rays, which meet the brass, from the
+    loaded gather source; read as diffuse there, it came out different)."""
+    brass = {"type": "principled", "metallic": 1.0, "roughness": 0.25}
+    path, out = tmp_path / "brass.npz", tmp_path / "image.npy"
+    d = cornell(method=method, final_gather=method == "photon_map")
+    d["large-box"]["bsdf"] = brass
+    scene = mi.load_dict(d)
+    image = np.array(mi.render(scene, spp=2, seed=5))
+    assert scene.integrator().stats["photons_caustic"] > 0
+    scene.integrator().save_cache(path)
+    script = textwrap.dedent(f"""
+        import pmic_integrator, numpy as np, mitsuba as mi
+        mi.set_variant("llvm_ad_rgb")
+        from pmic_integrator.kinds import pmic_cornell
+        d = pmic_cornell(24, **{SMALL!r}, method={method!r}, final_gather={method == "photon_map"!r},
+                         cache_file={str(path)!r})
+        d["large-box"]["bsdf"] = {brass!r}
+        scene = mi.load_dict(d)
+        np.save({str(out)!r}, np.array(mi.render(scene, spp=2, seed=5)))
+        assert scene.integrator().stats["cache_loaded_from"] == {str(path)!r}
+    """)
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=600)
+    assert np.array_equal(np.load(out), image)

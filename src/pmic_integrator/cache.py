@@ -646,7 +646,7 @@ def record_surroundings(scene, source: GatherSource, records: "CacheRecords", se
 
     What the adaptive estimator asks of a record before reading it at a camera path's
     first hit (render.reads.survey_first_reads)."""
-    from .bsdfs import lobes_separable
+    from .bsdfs import lobe_flags, lobes_separable
     from .cases import lobes_of
 
     about = records.shading_normal
@@ -658,7 +658,7 @@ def record_surroundings(scene, source: GatherSource, records: "CacheRecords", se
     si = scene.ray_intersect(ray)
     valid = si.is_valid()
     bsdf = si.bsdf(ray)
-    lobes = lobes_of(bsdf.flags())
+    lobes = lobes_of(lobe_flags(bsdf, source.diffuse_free))
     diffuse = valid & lobes.diffuse & lobes_separable(bsdf, si, valid & lobes.mixed)
     glossy = valid & ~diffuse & (si.shape.emitter() == None)  # noqa: E711
     n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)

@@ -86,7 +86,9 @@ FORMAT = "pmic-cache"
 #:     the adaptive estimator's test of a record's own noise).
 #: 31: records keep whether they owe the rest of their gather (CacheRecords.partial,
 #:     pipeline.GATHER_BUDGET_RAYS); gathers' near bounces weight emission by MIS.
-VERSION = 31
+#: 32: principled metals (metallic 1) are glossy only (bsdfs.diffuse_free): their
+#:     reflections of the lights are caustic photons; maps, scene info and records differ.
+VERSION = 32
 
 #: Array types that may appear in a cache, by their name in ``mitsuba`` (the variant's).
 _ARRAY_TYPES = ("Float", "UInt32", "Int32", "Bool", "Point3f", "Vector3f", "Color3f", "Vector3i",
@@ -222,8 +224,11 @@ def load(path, scene, fingerprint, settings_key: tuple):
         prepared = _build(meta["body"], arrays, scene, _classes())
     except (KeyError, TypeError, ValueError, RuntimeError) as error:
         raise CacheFileError(f"{where} is corrupt ({type(error).__name__}: {error})") from error
+    from .bsdfs import scene_diffuse_free
     from .skylight import SkySampler
     from .pipeline import pack_for_queries
     prepared.sky = SkySampler.build(scene)
+    if prepared.gather_source is not None:  # (registry indices are this process's)
+        prepared.gather_source.diffuse_free = scene_diffuse_free(scene)
     # (The packed layouts are derived, not stored: laid out again as after a build.)
     return pack_for_queries(prepared)

@@ -10,13 +10,13 @@ light at the shading point, and the caustic map carries light → specular → p
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import drjit as dr
 import mitsuba as mi
 
 from .cases import GATHER_PEAK_RATIO, GATHER_ROULETTE_BELOW, lobes_of
-from .bsdfs import (diffuse_response, lobes_separable,  # noqa: F401
+from .bsdfs import (diffuse_response, lobe_flags, lobes_separable,  # noqa: F401
                     near_diffuse, non_diffuse_context, response_azimuths)
 from ._jit import concat, finite, mis_weight, opaque_float, opaque_u32, segment_blocked, shading_normal_on_side
 from .emission import sample_emitter_direction
@@ -169,6 +169,10 @@ class GatherSource:
     #: Some BSDF's response leans (SceneInfo.has_leaning_lobes): responses at three
     #: azimuths per level, else one (bsdfs.response_azimuths).
     leaning: bool = True
+    #: The scene's BSDFs whose flags list a diffuse lobe they never have (principled
+    #: metals: bsdfs.diffuse_free_table), or None. Derived from the scene, not stored in
+    #: cache files (registry indices are the process's).
+    diffuse_free: mi.Bool = field(default=None, metadata={"derived": True})
 
     #: The full search reaches this many lookup radii: the precomputed photons are a
     #: fraction of the map (:func:`~pmic_integrator.irradiance.precompute_stride`), and
@@ -492,7 +496,7 @@ def _gather_vertex(scene: mi.Scene, source: GatherSource, walk: GatherWalk, samp
     active = walk.active & si.is_valid()
     distance = dr.select(active & (bounce == 0), si.t, walk.distance)
     bsdf = si.bsdf(ray)
-    lobes = lobes_of(bsdf.flags())  # (the vertex cases: pmic_integrator.cases)
+    lobes = lobes_of(lobe_flags(bsdf, source.diffuse_free))  # (the vertex cases: pmic_integrator.cases)
     # Normal on the side the ray arrives from, to match photon normals.
     n = mi.Vector3f(si.n)
     n = dr.select(dr.dot(n, ray.d) > 0, -n, n)

@@ -28,7 +28,7 @@ import mitsuba as mi
 
 from ._jit import (ONE_MINUS_EPSILON, concat, interleave, opaque_float, opaque_u32, rng as make_rng, scatter_count,
                    shading_normal_on_side)
-from .bsdfs import dark_side, lobes_separable, sample_lobes_apart
+from .bsdfs import dark_side, lobe_flags, lobes_separable, sample_lobes_apart, scene_diffuse_free
 from .cases import lobes_of
 from .emission import choose_emitter, emission_bounds, sample_emitter_rays
 from .streams import photon_batch_seed
@@ -395,7 +395,8 @@ class PhotonBounce:
 STORED_FIELDS = ("position", "normal", "power", "specular", "shared")
 
 
-def _photon_bounce(scene: mi.Scene, walk: PhotonWalk, caustic: bool, first: bool, inseparable: bool):
+def _photon_bounce(scene: mi.Scene, walk: PhotonWalk, caustic: bool, first: bool, inseparable: bool,
+                   diffuse_free=None):
     """One bounce of every path of ``walk``: the photon it stores where it hits, and
     the walk advanced past it (a BSDF sample, Russian roulette). Returns
     ``(PhotonBounce, alive, walk)`` (``alive``: the paths that go on), for one
@@ -408,7 +409,9 @@ def _photon_bounce(scene: mi.Scene, walk: PhotonWalk, caustic: bool, first: bool
     # only: it must not poison the estimates around it.
     valid = si.is_valid() & (dr.max(flux) > 0) & dr.all(dr.isfinite(flux))
     bsdf = si.bsdf(ray)
-    lobes = lobes_of(bsdf.flags())  # (the vertex cases: pmic_integrator.cases)
+    # (the vertex cases: pmic_integrator.cases; a principled metal's flags list a
+    # diffuse lobe it does not have: bsdfs.diffuse_free)
+    lobes = lobes_of(lobe_flags(bsdf, diffuse_free))
     has_diffuse = valid & lobes.diffuse
     # Not on the dark side of a one-sided surface (the outside of a room of thin
     # walls, lit by a sky): nothing there reflects, no lookup from the lit side
@@ -482,12 +485,14 @@ def _keep_photons(out: dict, photons: PhotonBounce, idx: mi.UInt32, paths: mi.UI
 
 def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed: int,
                  max_store_depth: int, bounds: tuple, inseparable: bool = True,
-                 guide: EmissionGuide | None = None, samples: list | None = None):
+                 guide: EmissionGuide | None = None, samples: list | None = None,
+                 diffuse_free=None):
     """Trace ``n_paths`` light paths; return photon arrays and their path indices.
     ``bounds``: the scene's :func:`emission_bounds`; ``inseparable``: some BSDF may
     ignore lobe masks (tested at every bounce); ``guide``: emission samples drawn from
     it; ``samples``: a list that receives the paths' emission samples (origin,
-    direction) as drawn. A wavefront: each bounce one kernel (:func:`_photon_bounce`),
+    direction) as drawn; ``diffuse_free``: the scene's
+    :func:`~pmic_integrator.bsdfs.diffuse_free_table` (None: there is none). A wavefront: each bounce one kernel (:func:`_photon_bounce`),
     then the paths that go on are compacted."""
     rng, path_id, ray, flux, emitter = _emit_batch(scene, first_path, n_paths, seed, bounds,
                                                    guide, samples)
@@ -501,10 +506,12 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
     while dr.width(walk.path_id):
         if bounce > 1 and dr.width(walk.path_id) <= TAIL_LOOP_PATHS:
             last = min(bounce + max(TAIL_LOOP_SLOTS // dr.width(walk.path_id), 1) - 1, bounces)
-            walk, alive = _trace_tail(scene, walk, kind == CAUSTIC, inseparable, bounce, last, out)
+            walk, alive = _trace_tail(scene, walk, kind == CAUSTIC, (inseparable, diffuse_free), bounce, last,
+                                      out)
         else:
             last = bounce
-            stored, alive, walk = _photon_bounce(scene, walk, kind == CAUSTIC, bounce == 1, inseparable)
+            stored, alive, walk = _photon_bounce(scene, walk, kind == CAUSTIC, bounce == 1, inseparable,
+                                                 diffuse_free)
             dr.eval(stored, alive, walk)
             idx = dr.compress(stored.store)
             if dr.width(idx) > 0:
@@ -519,7 +526,7 @@ def _trace_batch(scene: mi.Scene, kind: str, first_path: int, n_paths: int, seed
     return tuple(concat(out[name], types[name]) for name in PHOTON_FIELDS)
 
 
-def _trace_tail(scene: mi.Scene, walk: PhotonWalk, caustic: bool, inseparable: bool,
+def _trace_tail(scene: mi.Scene, walk: PhotonWalk, caustic: bool, bsdfs: tuple,
                 first_bounce: int, last_bounce: int, out: dict):
     """The bounces ``first_bounce``..``last_bounce`` of ``walk``'s few paths in one
     symbolic loop (:data:`TAIL_LOOP_PATHS`), their photons appended to ``out`` in the
@@ -528,7 +535,8 @@ def _trace_tail(scene: mi.Scene, walk: PhotonWalk, caustic: bool, inseparable: b
     room's photon stage: 0.55 s of kernels in 2.92 s; 1.02 s with this loop,
     ``benchmarks/photon_stage.py``). Each path's photon of
     bounce ``b`` goes to slot ``(b - first_bounce) * paths + path``. Returns
-    ``(walk, alive)``: the walk past ``last_bounce`` and the paths that go on."""
+    ``(walk, alive)``: the walk past ``last_bounce`` and the paths that go on.
+    ``bsdfs``: :func:`_photon_bounce`'s ``(inseparable, diffuse_free)``."""
     paths = dr.width(walk.path_id)
     slots = paths * (last_bounce - first_bounce + 1)
     types = _photon_types()
@@ -539,7 +547,7 @@ def _trace_tail(scene: mi.Scene, walk: PhotonWalk, caustic: bool, inseparable: b
     first, width, last = opaque_u32(first_bounce), opaque_u32(paths), opaque_u32(last_bounce)
 
     def body(walk, bounce, alive):
-        stored, going, walk = _photon_bounce(scene, walk, caustic, False, inseparable)
+        stored, going, walk = _photon_bounce(scene, walk, caustic, False, *bsdfs)
         slot = (bounce - first) * width + lane
         for name in kept:
             dr.scatter(getattr(buffer, name), getattr(stored, name), slot, stored.store)
@@ -584,6 +592,7 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
     batch_paths = min(FIRST_BATCH_PATHS, max(1024, 2 * target), max_paths)
     start = time.perf_counter()
     bounds = emission_bounds(scene)  # once: every batch shoots from the same rectangles
+    diffuse_free = scene_diffuse_free(scene)
     guide = None
     # (Not with a focus, emission.focus_box: both remap the origin's square, and the
     # guide's density is that of the square, not of the focus's mixture.)
@@ -594,7 +603,7 @@ def trace_photons(scene: mi.Scene, kind: str, target: int, max_depth: int, seed:
         samples = [] if may_guide and batch == 0 else None
         pos, nrm, pwr, dep, spec, path, delta, shared = _trace_batch(
             scene, kind, emitted, batch_paths, photon_batch_seed(seed, batch, kind == CAUSTIC),
-            max_store_depth, bounds, inseparable, guide, samples)
+            max_store_depth, bounds, inseparable, guide, samples, diffuse_free)
         got = dr.width(dep)
         if samples is not None and 0 < got < EMISSION_GUIDE_BELOW * batch_paths:
             # (All of the first batch: its paths' samples are uniform.)

@@ -30,7 +30,8 @@ from . import cache as cache_mod, spectra, streams
 from .emission import focus_box, is_delta, scene_bbox  # noqa: F401  (scene_bbox re-exported)
 from .fingerprint import SceneFingerprint, scene_fingerprint  # noqa: F401 (re-exported)
 from ._jit import concat, every_nth, opaque_float, rng as make_rng
-from .bsdfs import glossy_beside_diffuse, ignores_lobe_masks, lobes_lean, non_diffuse_context
+from .bsdfs import (glossy_beside_diffuse, ignores_lobe_masks, lobes_lean, non_diffuse_context, scene_bsdfs,
+                    scene_diffuse_free, scene_flags)
 from .cache import CacheRecords, RecordIndex
 from .gather import NEAR_HIT_LOOKUPS, VISIBILITY_LIFT, GatherSource, trace_gather_rays
 from .hashgrid import BallGrid, PointGridPyramid
@@ -237,8 +238,8 @@ class SceneInfo:
         diagonal = float(dr.norm(bbox.extents())) if bbox.valid() else 0.0
         has_diffuse, has_specular, has_coat, has_glossy_coat = False, False, False, False
         has_diffuse_transmission = False
-        bsdfs = _scene_bsdfs(scene)
-        for flags in [int(bsdf.flags()) for bsdf in bsdfs]:
+        bsdfs = scene_bsdfs(scene)
+        for flags in [scene_flags(bsdf) for bsdf in bsdfs]:
             has_diffuse |= bool(flags & int(mi.BSDFFlags.Diffuse))
             has_specular |= bool(flags & (int(mi.BSDFFlags.Delta) | int(mi.BSDFFlags.Glossy)))
             has_coat |= bool(flags & int(mi.BSDFFlags.Diffuse)) and \
@@ -547,12 +548,13 @@ def caustics_traced_for_denoiser(scene, settings: Settings, info: SceneInfo, glo
             f"second moment {moment:.0f}, at most {CAUSTIC_MAX_TRACED_MOMENT:.0f}) are traced instead")
 
 
-def _with_scene_bsdfs(source: GatherSource, info: SceneInfo) -> GatherSource:
+def _with_scene_bsdfs(source: GatherSource, info: SceneInfo, scene: mi.Scene) -> GatherSource:
     """``source`` told what the scene's BSDFs need of gather rays (those that transmit,
-    ignore lobe masks, or lean); returns it."""
+    ignore lobe masks, lean, or list a diffuse lobe they do not have); returns it."""
     source.crossing = info.has_diffuse_transmission
     source.inseparable = info.has_inseparable
     source.leaning = info.has_leaning_lobes
+    source.diffuse_free = scene_diffuse_free(scene)
     return source
 
 
@@ -568,7 +570,7 @@ def traced_caustics_moment(scene, settings: Settings, info: SceneInfo, global_ma
     chosen = caustic_sample(global_map)
     if dr.width(chosen) == 0:
         return math.inf
-    source = _with_scene_bsdfs(GatherSource.build(PhotonMap.empty(), 1.0), info)  # (only traced light)
+    source = _with_scene_bsdfs(GatherSource.build(PhotonMap.empty(), 1.0), info, scene)  # (only traced light)
     source.caustics_by_gathering = True
     ray, _, _, _, _, rng = cache_mod._stratified_rays(
         dr.gather(mi.Point3f, global_map.position, chosen), dr.gather(mi.Vector3f, global_map.normal, chosen),
@@ -720,7 +722,7 @@ def precompute(scene: mi.Scene, settings: Settings, info: SceneInfo, global_map:
                                   surface=(scene, settings.seed, ray_offset(info.diagonal, global_radius))
                                   if SURFACE_PROBED_ESTIMATES else None),
             global_radius)
-        gather_source = _with_scene_bsdfs(gather_source, info)
+        gather_source = _with_scene_bsdfs(gather_source, info, scene)
         gather_source.caustics_by_gathering = caustic_map.count == 0
         if depth_limit is None:
             gather_source.near_hit_distance = NEAR_HIT_LOOKUPS * global_radius
@@ -1135,25 +1137,7 @@ def _shape_area(shape) -> float:
 
 def _bsdf_flags(shape) -> int:
     bsdf = shape.bsdf()
-    return int(bsdf.flags()) if bsdf is not None else 0
-
-
-def _scene_bsdfs(scene: mi.Scene) -> list:
-    """The shapes' BSDFs, each once, and where some shape is an instance (of a
-    ``shapegroup``) every BSDF in the scene graph: an instance reports a default diffuse
-    BSDF of its own, not those of the shapes it holds (a glass sphere held in one left
-    the scene without a caustic map, its caustic 0.7-0.9 % of the image dark at 64 spp,
-    and a rough plastic there would not have had its lobes sampled apart)."""
-    found = {}
-    for shape in scene.shapes():
-        bsdf = shape.bsdf()
-        if bsdf is not None:
-            found.setdefault(id(bsdf), bsdf)
-    if any(shape.class_name() == "Instance" for shape in scene.shapes()):
-        for node in mi.traverse(scene).hierarchy:
-            if isinstance(node, mi.BSDF):
-                found.setdefault(id(node), node)
-    return list(found.values())
+    return scene_flags(bsdf) if bsdf is not None else 0
 
 
 def _shape_order(shape_and_area):

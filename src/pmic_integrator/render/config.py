@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from ..bsdfs import scene_diffuse_free
 from ..pipeline import PreparedScene
 from ..settings import Settings
 
@@ -187,13 +188,16 @@ class PathContext:
     #: Mitsuba's ``SamplingIntegrator.skip_area_emitters`` (hidden emitters are looked
     #: through), bound to the integrator.
     skip_area_emitters: object
+    #: The scene's BSDFs whose flags list a diffuse lobe they never have (principled
+    #: metals: bsdfs.diffuse_free_table), or None.
+    diffuse_free: object = None
 
     @staticmethod
     def of(scene, view: PreparedScene, config: PathConfig, fallback_counter,
            skip_area_emitters, spp: int = 1) -> "PathContext":
         return PathContext(scene, view, config, fallback_counter,
                            dr.opaque(mi.Float, view.global_radius), dr.opaque(mi.Float, spp),
-                           skip_area_emitters)
+                           skip_area_emitters, scene_diffuse_free(scene))
 
     def count_fallback(self, need) -> None:
         """Count the camera vertices that no record reached (stats)."""

@@ -94,7 +94,7 @@ def _add_aovs(ctx: PathContext, state: PathState, reads: Reads, emitted, direct,
 def camera_vertex(ctx: PathContext, sampler, state: PathState) -> PathState:
     """One vertex of every active path of ``state`` (the loop's body)."""
     config = ctx.config
-    v = Vertex.meet(state, config)
+    v = Vertex.meet(state, config, ctx.diffuse_free)
     state.valid |= (state.depth == 0) & v.si.is_valid()
     shown = state.active & ~state.crossed & ~state.coat_counted
     if config.hide_emitters:

@@ -10,7 +10,7 @@ import mitsuba as mi
 
 from .._jit import shading_normal_on_side
 from ..cases import Lobes, lobes_of
-from ..bsdfs import lobes_separable
+from ..bsdfs import lobe_flags, lobes_separable
 from .config import PathConfig
 from .state import PathState
 
@@ -35,11 +35,13 @@ class Vertex:
     lit_diffuse: mi.Bool  #: it has a diffuse lobe that can be read or traced alone
 
     @staticmethod
-    def meet(state: PathState, config: PathConfig) -> "Vertex":
+    def meet(state: PathState, config: PathConfig, diffuse_free=None) -> "Vertex":
+        """The surface ``state``'s ray meets (``diffuse_free``: the scene's
+        :func:`~pmic_integrator.bsdfs.diffuse_free_table`)."""
         si = state.pi.compute_surface_interaction(state.ray, ray_flags=mi.RayFlags.All,
                                                   active=state.active)
         bsdf = si.bsdf(state.ray)
-        lobes = lobes_of(bsdf.flags())
+        lobes = lobes_of(lobe_flags(bsdf, diffuse_free))
         active_next = state.active & si.is_valid() & (state.depth + 1 < config.max_depth)
         separable = mi.Bool(True)
         if config.inseparable_bsdfs:
