@@ -68,10 +68,11 @@ def first_reads(settings: Settings, prepared: PreparedScene, spp: int) -> bool:
     """Whether this render, of ``spp`` samples per pixel, reads records at first
     vertices: where they are allowed (:func:`first_reads_allowed`) and some record
     qualifies at that sample count (reads.first_read_limit)."""
-    from .reads import any_first_reads, first_read_limit  # (reads builds on this module)
+    from .reads import first_read_limit  # (reads builds on this module)
 
-    return first_reads_allowed(settings, prepared) and any_first_reads(prepared.index) and \
-        first_read_limit(prepared.index) >= spp
+    # (A limit of at least spp >= 1 means some record may be read: first_read_spp is 0
+    # for the others.)
+    return first_reads_allowed(settings, prepared) and first_read_limit(prepared.index) >= spp
 
 
 @dataclass(frozen=True)

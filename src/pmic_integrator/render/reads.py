@@ -168,9 +168,9 @@ def first_read_pays(ctx: PathContext, v: Vertex, active):
         active, lambda: index.guide_record(v.si.p, v.n, active),
         lambda: (dr.zeros(mi.UInt32, lanes), dr.zeros(mi.Float, lanes)), label="first_read_record")
     active &= bounced_share > 0
-    active &= dr.gather(mi.Bool, index.first_readable, record, active)
-    # Only up to the sample count at which the record's error would show above the
-    # traced bounce's noise (survey_first_reads, FIRST_READ_ERROR_SCALE).
+    # A record that may be read (survey_first_reads), up to the sample count at which
+    # its error would show above the traced bounce's noise (FIRST_READ_ERROR_SCALE);
+    # first_read_spp is 0 for the others, and the count is at least 1.
     active &= dr.gather(mi.Float, index.first_read_spp, record, active) >= ctx.spp
     # The guiding record is found without a visibility test: read at the first hit,
     # one behind a wall (outside a closed box standing on a floor, under a sky) lit
