@@ -177,16 +177,18 @@ def scene_bsdfs(scene: mi.Scene) -> list:
 
 def diffuse_free(bsdf: mi.BSDF) -> bool:
     """Does ``bsdf``'s flags list a diffuse lobe it never has? A ``principled`` metal
-    (``metallic`` a constant 1): Mitsuba weighs its diffuse, sheen and subsurface terms
-    by 1 - metallic, and its flags do not change with the value. Such a BSDF is read as
-    its lobes are, glossy only (:func:`lobe_flags`), as a rough conductor: photons it
-    reflects onto diffuse surfaces are caustic photons, and camera paths that meet it
-    behind a traced vertex leave its reflection of the lights to the caustic map. Read
-    as an inseparable BSDF (a diffuse lobe that cannot be taken apart), the glossy
-    Cornell box's brass block lit the ceiling only through traced paths that found the
-    light in it: 40 % of that image's noise at 16 spp (docs/tuning.md, "Principled
-    metals"). A textured ``metallic`` is not read: it may be under 1 somewhere. A
-    ``twosided`` BSDF is diffuse free where the BSDFs it holds are."""
+    (``metallic`` a constant 1) or glass (``spec_trans`` 1 and no ``sheen``): Mitsuba
+    weighs its diffuse and subsurface terms by (1 - metallic)(1 - spec_trans) and its
+    sheen by 1 - metallic, and its flags do not change with the values. Such a BSDF is
+    read as its lobes are, glossy only (:func:`lobe_flags`), as a rough conductor or a
+    rough dielectric: photons it reflects or transmits onto diffuse surfaces are
+    caustic photons, and camera paths that meet it behind a traced vertex leave its
+    reflection of the lights to the caustic map. Read as an inseparable BSDF (a diffuse
+    lobe that cannot be taken apart), the glossy Cornell box's brass block lit the
+    ceiling only through traced paths that found the light in it: 40 % of that image's
+    noise at 16 spp (docs/tuning.md, "Principled metals"). Textured values are not
+    read: they may be under 1 somewhere. A ``twosided`` BSDF is diffuse free where the
+    BSDFs it holds are."""
     if bsdf.class_name() == "TwoSidedBRDF":
         sides = [node for node in mi.traverse(bsdf).hierarchy
                  if isinstance(node, mi.BSDF) and node.class_name() != "TwoSidedBRDF"]
@@ -194,10 +196,14 @@ def diffuse_free(bsdf: mi.BSDF) -> bool:
     if bsdf.class_name() != "Principled":
         return False
     params = mi.traverse(bsdf)
-    if "metallic.value" not in params:
-        return False
-    value = params["metallic.value"]
-    return dr.width(value) == 1 and float(dr.ravel(value)[0]) >= 1.0
+
+    def constant(name):  # a parameter's value where it is one constant, else None
+        value = params[f"{name}.value"] if f"{name}.value" in params else None
+        return float(dr.ravel(value)[0]) if value is not None and dr.width(value) == 1 else None
+
+    metal = constant("metallic") == 1.0
+    glass = constant("spec_trans") == 1.0 and constant("sheen") == 0.0
+    return metal or glass
 
 
 def diffuse_free_table(bsdfs: list) -> mi.Bool | None:

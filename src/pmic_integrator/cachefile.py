@@ -86,7 +86,7 @@ FORMAT = "pmic-cache"
 #:     the adaptive estimator's test of a record's own noise).
 #: 31: records keep whether they owe the rest of their gather (CacheRecords.partial,
 #:     pipeline.GATHER_BUDGET_RAYS); gathers' near bounces weight emission by MIS.
-#: 32: principled metals (metallic 1) are glossy only (bsdfs.diffuse_free): their
+#: 32: principled metals and glass are glossy only (bsdfs.diffuse_free): their
 #:     reflections of the lights are caustic photons; maps, scene info and records differ.
 VERSION = 32
 

@@ -3,7 +3,7 @@ structure of BSDF they meet, and the per-lane classification both walks read.
 
 A BSDF's flags give its **structure** (:class:`Lobes`, from :func:`lobes_of`; the walks
 read them through :func:`~pmic_integrator.bsdfs.lobe_flags`, which drops the diffuse lobe
-a principled metal's flags list but it does not have); two
+a principled metal's or glass's flags list but it does not have); two
 **modifiers** change how a structure is read: a diffuse lobe that *leans* off the
 shading normal (normal maps) and *transmission*. For each case :data:`VERTEX_CASES`
 gives, per walk, what is read there, which lobes take emitter samples, how the walk
@@ -167,7 +167,7 @@ VERTEX_CASES: tuple[VertexCase, ...] = (
         differs="a camera read shows directly (a glossy reflection averaged away is seen: 2), "
                 "a gather read is averaged over a record's rays (4)"),
     VertexCase(
-        "specular_only", "delta or glossy lobes only (glass, metal, a principled metal: "
+        "specular_only", "delta or glossy lobes only (glass, metal, a principled metal or glass: "
                          "bsdfs.diffuse_free)",
         camera=WalkRule("nothing", "glossy lobes share emitter samples with the continuation",
                         "a sample of the BSDF", "Mitsuba's"),

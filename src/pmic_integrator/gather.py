@@ -170,7 +170,7 @@ class GatherSource:
     #: azimuths per level, else one (bsdfs.response_azimuths).
     leaning: bool = True
     #: The scene's BSDFs whose flags list a diffuse lobe they never have (principled
-    #: metals: bsdfs.diffuse_free_table), or None. Derived from the scene, not stored in
+    #: metals and glass: bsdfs.diffuse_free_table), or None. Derived from the scene, not stored in
     #: cache files (registry indices are the process's).
     diffuse_free: mi.Bool = field(default=None, metadata={"derived": True})
 

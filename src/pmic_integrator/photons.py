@@ -409,7 +409,7 @@ def _photon_bounce(scene: mi.Scene, walk: PhotonWalk, caustic: bool, first: bool
     # only: it must not poison the estimates around it.
     valid = si.is_valid() & (dr.max(flux) > 0) & dr.all(dr.isfinite(flux))
     bsdf = si.bsdf(ray)
-    # (the vertex cases: pmic_integrator.cases; a principled metal's flags list a
+    # (the vertex cases: pmic_integrator.cases; a principled metal's or glass's flags list a
     # diffuse lobe it does not have: bsdfs.diffuse_free)
     lobes = lobes_of(lobe_flags(bsdf, diffuse_free))
     has_diffuse = valid & lobes.diffuse

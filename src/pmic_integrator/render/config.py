@@ -190,7 +190,7 @@ class PathContext:
     #: through), bound to the integrator.
     skip_area_emitters: object
     #: The scene's BSDFs whose flags list a diffuse lobe they never have (principled
-    #: metals: bsdfs.diffuse_free_table), or None.
+    #: metals and glass: bsdfs.diffuse_free_table), or None.
     diffuse_free: object = None
 
     @staticmethod

@@ -67,7 +67,7 @@ def _emitter_sample(ctx: PathContext, sampler, v: Vertex, active, fate, guides, 
     # BSDF): unless armed, one evaluation of the whole serves (its three evaluations
     # were a fifth of the material preview's direct light).
     split = separable & ~(traced & ~armed)
-    # (Only where there is a diffuse lobe: a principled metal, which has none, ignores
+    # (Only where there is a diffuse lobe: a principled metal or glass, which has none, ignores
     # the context's mask and would give its whole value twice: bsdfs.diffuse_free.)
     f_diffuse, pdf_diffuse_lobe = bsdf.eval_pdf(diffuse_context(), si, wo, ok & split & v.lobes.diffuse)
     f_rest, pdf_rest_lobe = bsdf.eval_pdf(non_diffuse_context(), si, wo, ok & split)
