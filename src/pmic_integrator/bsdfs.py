@@ -175,6 +175,11 @@ def scene_bsdfs(scene: mi.Scene) -> list:
     return list(found.values())
 
 
+#: BSDFs that hold others and add no lobe of their own (Mitsuba's class names):
+#: their lobes are those they hold.
+LOBE_WRAPPERS = ("TwoSidedBRDF", "NormalMap", "BumpMap")
+
+
 def diffuse_free(bsdf: mi.BSDF) -> bool:
     """Does ``bsdf``'s flags list a diffuse lobe it never has? A ``principled`` metal
     (``metallic`` a constant 1) or glass (``spec_trans`` 1 and no ``sheen``): Mitsuba
@@ -187,12 +192,12 @@ def diffuse_free(bsdf: mi.BSDF) -> bool:
     lobe that cannot be taken apart), the glossy Cornell box's brass block lit the
     ceiling only through traced paths that found the light in it: 40 % of that image's
     noise at 16 spp (docs/tuning.md, "Principled metals"). Textured values are not
-    read: they may be under 1 somewhere. A ``twosided`` BSDF is diffuse free where the
-    BSDFs it holds are."""
-    if bsdf.class_name() == "TwoSidedBRDF":
-        sides = [node for node in mi.traverse(bsdf).hierarchy
-                 if isinstance(node, mi.BSDF) and node.class_name() != "TwoSidedBRDF"]
-        return bool(sides) and all(diffuse_free(side) for side in sides)
+    read: they may be under 1 somewhere. A ``twosided``, ``normalmap`` or ``bumpmap``
+    BSDF is diffuse free where the BSDFs it holds are (:data:`LOBE_WRAPPERS`)."""
+    if bsdf.class_name() in LOBE_WRAPPERS:
+        held = [node for node in mi.traverse(bsdf).hierarchy
+                if isinstance(node, mi.BSDF) and node.class_name() not in LOBE_WRAPPERS]
+        return bool(held) and all(diffuse_free(inner) for inner in held)
     if bsdf.class_name() != "Principled":
         return False
     params = mi.traverse(bsdf)
