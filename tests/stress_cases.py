@@ -206,6 +206,11 @@ BSDFS = {
     "plastic": lambda: {"type": "plastic", "diffuse_reflectance": _rgb([0.8, 0.3, 0.2])},
     "principled": lambda: {"type": "principled", "base_color": _rgb([0.7, 0.5, 0.3]),
                            "roughness": 0.4, "metallic": 0.2, "specular": 0.5},
+    # Principled metal and glass: flags that list a diffuse lobe they do not have
+    # (bsdfs.diffuse_free).
+    "principled_metal": lambda: {"type": "principled", "base_color": _rgb([0.8, 0.6, 0.3]),
+                                 "roughness": 0.25, "metallic": 1.0},
+    "principled_glass": lambda: {"type": "principled", "roughness": 0.3, "spec_trans": 1.0},
     "roughconductor": lambda: {"type": "roughconductor", "material": "Au", "alpha": 0.15},
     "conductor": lambda: {"type": "conductor", "material": "Ag"},
     "dielectric": lambda: {"type": "dielectric", "int_ior": 1.5},
@@ -222,8 +227,8 @@ def cornell_object(res=RES, bsdf="diffuse"):
 
 def all_bsdfs(res=RES, skip=()):
     """The Cornell box without its boxes, holding one small sphere of each BSDF in
-    ``BSDFS`` but ``skip`` (a 3x3 grid): every BSDF in one scene, one set of kernels to
-    compile (instead of nine)."""
+    ``BSDFS`` but ``skip`` (rows of three): every BSDF in one scene, one set of kernels to
+    compile (instead of one set per BSDF)."""
     d, scale = cornell(res=res)
     d.pop("large-box")
     d.pop("small-box")

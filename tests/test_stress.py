@@ -183,7 +183,7 @@ match("nan_inf_texels", {"name": "nan_texture"}, ref_scene={"name": "nan_texture
 # seen from the back.
 # A first render compiles pmic's kernels for the scene's BSDFs: measured 55-120 s on this
 # machine (2 cores shared with other work) for each specular or glossy BSDF alone and for
-# the nine-BSDF scene, where other scenes compile in 5-40 s. With RENDER_TIMEOUT, such
+# the all-BSDF scene, where other scenes compile in 5-40 s. With RENDER_TIMEOUT, such
 # compilation was reported as a hang; these cases get COMPILE_TIMEOUT (a hang still fails).
 match("bsdf_all_in_one_scene", {"name": "all_bsdfs"}, timeout=COMPILE_TIMEOUT)
 for b in sc.BSDFS:
