@@ -142,23 +142,14 @@ def markdown(rows, spp: int, seeds: int, command: str) -> list[str]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", nargs="*", default=["veach_bidir", "white_room", "cornell_glossy", "torus"],
-                        help="public scenes (../shared/scenes)")
-    parser.add_argument("--kinds", nargs="*", default=[],
-                        help="scenes built in code (pmic_integrator.kinds.INTERIOR_KINDS)")
-    parser.add_argument("--kind-scale", type=int, default=1)
-    parser.add_argument("--reference-seconds", type=float, default=150.0,
-                        help="the kinds' path references' time (kept once rendered)")
+    public_scenes.add_study_arguments(parser, ["veach_bidir", "white_room", "cornell_glossy", "torus"], [], 1)
     parser.add_argument("--spp", type=int, default=16)
-    parser.add_argument("--seeds", type=int, default=2, help="render seeds per configuration")
     parser.add_argument("--stem", default="caustic_map")
     args = parser.parse_args(argv)
     if args.seeds < 1:
         parser.error(f"--seeds must be an integer >= 1, got {args.seeds}")
     mi.set_variant(common.VARIANT)
-    rows = [measure(label, scene, found, args.spp, args.seeds, print)
-            for label, scene, found in public_scenes.scenes_with_references(
-                args.scenes, args.kinds, args.reference_seconds, args.kind_scale, print)]
+    rows = public_scenes.study_rows(args, measure, args.spp)
     lines = markdown(rows, args.spp, args.seeds, common.command(__file__, argv))
     md = common.write_results(common.RESULTS, args.stem, rows, lines)
     print(f"written {md}")

@@ -109,6 +109,27 @@ def scenes_with_references(scenes, kinds, reference_seconds: float, kind_scale: 
         yield f"{name} (×{kind_scale})", scene, found
 
 
+def add_study_arguments(parser, scenes: list, kinds: list, kind_scale: int) -> None:
+    """The options of a study over public scenes and kinds (``caustic_map.py``,
+    ``first_reads_spp.py``): ``--scenes``, ``--kinds``, ``--kind-scale``,
+    ``--reference-seconds`` and ``--seeds``, with these defaults."""
+    parser.add_argument("--scenes", nargs="*", default=scenes, help="public scenes (../shared/scenes)")
+    parser.add_argument("--kinds", nargs="*", default=kinds,
+                        help="scenes built in code (pmic_integrator.kinds.INTERIOR_KINDS)")
+    parser.add_argument("--kind-scale", type=int, default=kind_scale)
+    parser.add_argument("--reference-seconds", type=float, default=150.0,
+                        help="the kinds' path references' time (kept once rendered)")
+    parser.add_argument("--seeds", type=int, default=2, help="render seeds per configuration")
+
+
+def study_rows(args, measure, spp) -> list:
+    """``measure(label, scene, (reference, noise, origin), spp, seeds, log)`` of each
+    scene of a study's ``args`` (:func:`add_study_arguments`) that has a reference."""
+    return [measure(label, scene, found, spp, args.seeds, print)
+            for label, scene, found in scenes_with_references(
+                args.scenes, args.kinds, args.reference_seconds, args.kind_scale, print)]
+
+
 def measure_kind(name: str, spp: int, reference_seconds: float, log, scale: int = 1, spec=None,
                  path_seeds: int = 1):
     scene, found = load_kind(name, reference_seconds, scale)

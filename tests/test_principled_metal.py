@@ -27,9 +27,14 @@ def _brass_box(res=32, normal_map=False):
     d["large-box"]["bsdf"] = BRASS
     d["small-box"]["bsdf"] = {"type": "twosided", "bsdf": {**BRASS, "roughness": 0.1}}
     if normal_map:
-        flat = {"type": "bitmap", "raw": True, "data": mi.TensorXf(np.full((2, 2, 3), 0.5, np.float32))}
-        d["small-box"]["bsdf"] = {"type": "normalmap", "normalmap": flat, "bsdf": d["small-box"]["bsdf"]}
+        d["small-box"]["bsdf"] = _normal_mapped(d["small-box"]["bsdf"])
     return mi.load_dict(d)
+
+
+def _normal_mapped(bsdf):
+    """``bsdf`` under a flat normal map (a dict; its tensor is taken by the load)."""
+    flat = {"type": "bitmap", "raw": True, "data": mi.TensorXf(np.full((2, 2, 3), 0.5, np.float32))}
+    return {"type": "normalmap", "normalmap": flat, "bsdf": bsdf}
 
 
 def _glass_sphere(res=32):
@@ -48,13 +53,8 @@ SCENES = {"brass": _brass_box, "glass": _glass_sphere,
 def test_principled_metals_are_told_apart_from_other_bsdfs():
     assert diffuse_free(mi.load_dict(BRASS))
     assert diffuse_free(mi.load_dict({"type": "twosided", "bsdf": BRASS}))
-
-    def normal_mapped(bsdf):  # (a flat normal map; its tensor is taken by each load)
-        flat = {"type": "bitmap", "raw": True, "data": mi.TensorXf(np.full((2, 2, 3), 0.5, np.float32))}
-        return mi.load_dict({"type": "normalmap", "normalmap": flat, "bsdf": bsdf})
-
-    assert diffuse_free(normal_mapped({"type": "twosided", "bsdf": BRASS}))
-    assert not diffuse_free(normal_mapped({"type": "principled"}))
+    assert diffuse_free(mi.load_dict(_normal_mapped({"type": "twosided", "bsdf": BRASS})))
+    assert not diffuse_free(mi.load_dict(_normal_mapped({"type": "principled"})))
     assert not diffuse_free(mi.load_dict({**BRASS, "metallic": 0.9}))
     assert diffuse_free(mi.load_dict(GLASS))
     assert not diffuse_free(mi.load_dict({**GLASS, "spec_trans": 0.9}))

@@ -224,11 +224,10 @@ def load(path, scene, fingerprint, settings_key: tuple):
         prepared = _build(meta["body"], arrays, scene, _classes())
     except (KeyError, TypeError, ValueError, RuntimeError) as error:
         raise CacheFileError(f"{where} is corrupt ({type(error).__name__}: {error})") from error
-    from .bsdfs import scene_diffuse_free
     from .skylight import SkySampler
-    from .pipeline import pack_for_queries
+    from .pipeline import pack_for_queries, with_scene_bsdfs
     prepared.sky = SkySampler.build(scene)
-    if prepared.gather_source is not None:  # (registry indices are this process's)
-        prepared.gather_source.diffuse_free = scene_diffuse_free(scene)
+    if prepared.gather_source is not None:  # (its diffuse_free: registry indices are this process's)
+        with_scene_bsdfs(prepared.gather_source, prepared.info, scene)
     # (The packed layouts are derived, not stored: laid out again as after a build.)
     return pack_for_queries(prepared)

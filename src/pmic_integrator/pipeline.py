@@ -548,7 +548,7 @@ def caustics_traced_for_denoiser(scene, settings: Settings, info: SceneInfo, glo
             f"second moment {moment:.0f}, at most {CAUSTIC_MAX_TRACED_MOMENT:.0f}) are traced instead")
 
 
-def _with_scene_bsdfs(source: GatherSource, info: SceneInfo, scene: mi.Scene) -> GatherSource:
+def with_scene_bsdfs(source: GatherSource, info: SceneInfo, scene: mi.Scene) -> GatherSource:
     """``source`` told what the scene's BSDFs need of gather rays (those that transmit,
     ignore lobe masks, lean, or list a diffuse lobe they do not have); returns it."""
     source.crossing = info.has_diffuse_transmission
@@ -570,7 +570,7 @@ def traced_caustics_moment(scene, settings: Settings, info: SceneInfo, global_ma
     chosen = caustic_sample(global_map)
     if dr.width(chosen) == 0:
         return math.inf
-    source = _with_scene_bsdfs(GatherSource.build(PhotonMap.empty(), 1.0), info, scene)  # (only traced light)
+    source = with_scene_bsdfs(GatherSource.build(PhotonMap.empty(), 1.0), info, scene)  # (only traced light)
     source.caustics_by_gathering = True
     ray, _, _, _, _, rng = cache_mod._stratified_rays(
         dr.gather(mi.Point3f, global_map.position, chosen), dr.gather(mi.Vector3f, global_map.normal, chosen),
@@ -722,7 +722,7 @@ def precompute(scene: mi.Scene, settings: Settings, info: SceneInfo, global_map:
                                   surface=(scene, settings.seed, ray_offset(info.diagonal, global_radius))
                                   if SURFACE_PROBED_ESTIMATES else None),
             global_radius)
-        gather_source = _with_scene_bsdfs(gather_source, info, scene)
+        gather_source = with_scene_bsdfs(gather_source, info, scene)
         gather_source.caustics_by_gathering = caustic_map.count == 0
         if depth_limit is None:
             gather_source.near_hit_distance = NEAR_HIT_LOOKUPS * global_radius
